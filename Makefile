@@ -1,0 +1,47 @@
+# Two commands for a new user: `make run` and `make test`. Both create .venv and install the
+# project first; as root they also install the Debian libraries the stack needs when missing.
+PYTHON ?= $(shell command -v python3.11 || command -v python3)
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed-stamp
+HOST ?= 127.0.0.1
+PORT ?= 8080
+DEBIAN_PACKAGES := libusb-1.0-0 chromium
+
+.PHONY: run test lint bench system-deps clean
+
+$(STAMP): pyproject.toml
+	@$(MAKE) --no-print-directory system-deps
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(BIN)/python -m pip install --quiet -e '.[test,bench]'
+	touch $(STAMP)
+
+system-deps:
+	@missing=""; \
+	ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0' || missing="$$missing libusb-1.0-0"; \
+	[ -x /usr/bin/chromium ] || missing="$$missing chromium"; \
+	if [ -z "$$missing" ]; then exit 0; fi; \
+	if [ "$$(id -u)" = 0 ]; then \
+		echo "installing Debian packages:$$missing"; \
+		apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $$missing; \
+	else \
+		echo "warning: missing Debian packages:$$missing (run as root or: sudo apt-get install$$missing)"; \
+	fi
+
+run: $(STAMP)
+	$(BIN)/slam6d-workbench --host $(HOST) --port $(PORT) --sessions-dir sessions
+
+test: $(STAMP)
+	$(BIN)/ruff check slam6d app tests benchmarks
+	$(BIN)/python -m pytest
+
+lint: $(STAMP)
+	$(BIN)/ruff check slam6d app tests benchmarks
+	$(BIN)/ruff format --check slam6d app tests benchmarks
+
+bench: $(STAMP)
+	$(BIN)/python benchmarks/pair.py
+
+clean:
+	rm -rf $(VENV) build *.egg-info .pytest_cache test-artifacts

@@ -1,0 +1,32 @@
+"""Errors a user can act on: each names the file (and line) that caused it."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+
+class Slam6dError(Exception):
+    """Base class for every error the engine raises on purpose."""
+
+
+class FormatError(Slam6dError):
+    """A file could not be read as the format it claims to be."""
+
+    def __init__(self, path: Path | str, message: str, line: int | None = None) -> None:
+        self.path = Path(path)
+        self.line = line
+        self.reason = message
+        where = f"{self.path}:{line}" if line is not None else f"{self.path}"
+        super().__init__(f"{where}: {message}")
+
+
+class EmptyScanError(Slam6dError):
+    """A scan has no usable points left (after dropping no-echo, NaN/inf and range-filtered points)."""
+
+    def __init__(self, path: Path | str, detail: str = "") -> None:
+        self.path = Path(path)
+        super().__init__(f"{self.path}: scan has no usable points{': ' + detail if detail else ''}")
+
+
+class RegistrationError(Slam6dError):
+    """Registration could not produce a result (e.g. no point pairs within the max distance)."""

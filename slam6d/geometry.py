@@ -1,0 +1,242 @@
+"""Rigid-body geometry shared by every engine module.
+
+Poses are 4x4 homogeneous matrices (``world_from_scan``: ``p_world = R @ p + t``) in the
+canonical frame: right-handed, metres, z up. Keeping one representation everywhere means the
+frame and unit quirks of file formats are handled once, at the edges (see :class:`FrameConvention`).
+Angles are radians unless a name says ``deg``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+Matrix = NDArray[np.float64]
+
+
+def make_pose(rotation: Matrix, translation: Matrix) -> Matrix:
+    """Assemble a 4x4 pose from a 3x3 rotation and a 3-vector."""
+    pose = np.eye(4)
+    pose[:3, :3] = rotation
+    pose[:3, 3] = np.asarray(translation, dtype=np.float64).reshape(3)
+    return pose
+
+
+def invert(pose: Matrix) -> Matrix:
+    """Inverse of a rigid transform, exact (transpose) rather than a general matrix inverse."""
+    rotation = pose[:3, :3].T
+    return make_pose(rotation, -rotation @ pose[:3, 3])
+
+
+def transform_points(pose: Matrix, points: Matrix) -> Matrix:
+    """Apply a pose to an (N, 3) array of points."""
+    return points @ pose[:3, :3].T + pose[:3, 3]
+
+
+def rot_x(angle: float) -> Matrix:
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+
+
+def rot_y(angle: float) -> Matrix:
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def rot_z(angle: float) -> Matrix:
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def euler_to_rotation(rx: float, ry: float, rz: float) -> Matrix:
+    """Rotation R = Rx(rx)·Ry(ry)·Rz(rz), the order 3DTK uses for ``.pose`` files."""
+    return rot_x(rx) @ rot_y(ry) @ rot_z(rz)
+
+
+def rotation_to_euler(rotation: Matrix) -> tuple[float, float, float]:
+    """Angles (rx, ry, rz) with R = Rx·Ry·Rz; ry in [-pi/2, pi/2].
+
+    At gimbal lock (|ry| = pi/2) rz is set to 0 and rx absorbs the rotation, so the
+    round trip through :func:`euler_to_rotation` still reproduces the matrix.
+    """
+    sin_ry = float(np.clip(rotation[0, 2], -1.0, 1.0))
+    ry = float(np.arcsin(sin_ry))
+    if abs(sin_ry) < 1.0 - 1e-12:
+        rx = float(np.arctan2(-rotation[1, 2], rotation[2, 2]))
+        rz = float(np.arctan2(-rotation[0, 1], rotation[0, 0]))
+    else:
+        rz = 0.0
+        rx = float(np.arctan2(rotation[2, 1], rotation[1, 1]))
+    return rx, ry, rz
+
+
+def pose_from_euler(translation: Matrix, rx: float, ry: float, rz: float) -> Matrix:
+    return make_pose(euler_to_rotation(rx, ry, rz), translation)
+
+
+def pose_from_xyzrpy(x: float, y: float, z: float, roll: float, pitch: float, yaw: float) -> Matrix:
+    """Robot-style 6-tuple in the canonical frame: roll about x, pitch about y, yaw about z (up).
+
+    The composition is yaw·pitch·roll (Rz·Ry·Rx), the aerospace convention robotics users expect
+    when they type roll/pitch/yaw; it is distinct from the 3DTK file order on purpose.
+    """
+    return make_pose(rot_z(yaw) @ rot_y(pitch) @ rot_x(roll), np.array([x, y, z]))
+
+
+def xyzrpy_from_pose(pose: Matrix) -> tuple[float, float, float, float, float, float]:
+    """Inverse of :func:`pose_from_xyzrpy`."""
+    r = pose[:3, :3]
+    pitch = float(np.arcsin(np.clip(-r[2, 0], -1.0, 1.0)))
+    if abs(r[2, 0]) < 1.0 - 1e-12:
+        roll = float(np.arctan2(r[2, 1], r[2, 2]))
+        yaw = float(np.arctan2(r[1, 0], r[0, 0]))
+    else:
+        roll = float(np.arctan2(-r[1, 2], r[1, 1]))
+        yaw = 0.0
+    x, y, z = (float(v) for v in pose[:3, 3])
+    return x, y, z, roll, pitch, yaw
+
+
+# ---------------------------------------------------------------- quaternions (w, x, y, z)
+
+
+def rotation_to_quaternion(rotation: Matrix) -> Matrix:
+    """Unit quaternion (w, x, y, z) with w >= 0, robust for every rotation (Shepperd's method)."""
+    r = rotation
+    trace = r[0, 0] + r[1, 1] + r[2, 2]
+    if trace > 0.0:
+        s = 2.0 * np.sqrt(trace + 1.0)
+        q = np.array([0.25 * s, (r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s])
+    elif r[0, 0] > r[1, 1] and r[0, 0] > r[2, 2]:
+        s = 2.0 * np.sqrt(1.0 + r[0, 0] - r[1, 1] - r[2, 2])
+        q = np.array([(r[2, 1] - r[1, 2]) / s, 0.25 * s, (r[0, 1] + r[1, 0]) / s, (r[0, 2] + r[2, 0]) / s])
+    elif r[1, 1] > r[2, 2]:
+        s = 2.0 * np.sqrt(1.0 + r[1, 1] - r[0, 0] - r[2, 2])
+        q = np.array([(r[0, 2] - r[2, 0]) / s, (r[0, 1] + r[1, 0]) / s, 0.25 * s, (r[1, 2] + r[2, 1]) / s])
+    else:
+        s = 2.0 * np.sqrt(1.0 + r[2, 2] - r[0, 0] - r[1, 1])
+        q = np.array([(r[1, 0] - r[0, 1]) / s, (r[0, 2] + r[2, 0]) / s, (r[1, 2] + r[2, 1]) / s, 0.25 * s])
+    q /= np.linalg.norm(q)
+    return q if q[0] >= 0.0 else -q
+
+
+def quaternion_to_rotation(q: Matrix) -> Matrix:
+    """Rotation matrix of a quaternion (w, x, y, z); the quaternion need not be normalised."""
+    w, x, y, z = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def slerp(q0: Matrix, q1: Matrix, fraction: float) -> Matrix:
+    """Spherical linear interpolation along the shorter arc, so loop corrections never go the long way round."""
+    q0 = np.asarray(q0, dtype=np.float64) / np.linalg.norm(q0)
+    q1 = np.asarray(q1, dtype=np.float64) / np.linalg.norm(q1)
+    dot = float(np.dot(q0, q1))
+    if dot < 0.0:
+        q1, dot = -q1, -dot
+    if dot > 0.9995:  # nearly parallel: linear interpolation is exact to float precision
+        q = q0 + fraction * (q1 - q0)
+        return q / np.linalg.norm(q)
+    theta = np.arccos(dot)
+    return (np.sin((1.0 - fraction) * theta) * q0 + np.sin(fraction * theta) * q1) / np.sin(theta)
+
+
+def interpolate_pose(start: Matrix, end: Matrix, fraction: float) -> Matrix:
+    """Pose a given fraction of the way from ``start`` to ``end``: translation linear, rotation by slerp."""
+    q = slerp(rotation_to_quaternion(start[:3, :3]), rotation_to_quaternion(end[:3, :3]), fraction)
+    t = (1.0 - fraction) * start[:3, 3] + fraction * end[:3, 3]
+    return make_pose(quaternion_to_rotation(q), t)
+
+
+def rotation_angle(rotation: Matrix) -> float:
+    """Angle of a rotation matrix in radians (0..pi)."""
+    cos = (np.trace(rotation) - 1.0) / 2.0
+    return float(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+
+def pose_difference(a: Matrix, b: Matrix) -> tuple[float, float]:
+    """Translation distance and rotation angle (radians) between two poses: the error of ``a`` vs ``b``."""
+    delta = invert(b) @ a
+    return float(np.linalg.norm(delta[:3, 3])), rotation_angle(delta[:3, :3])
+
+
+def axis_angle_to_rotation(axis_angle: Matrix) -> Matrix:
+    """Rodrigues' formula; used by small-angle (point-to-plane) updates."""
+    v = np.asarray(axis_angle, dtype=np.float64)
+    angle = float(np.linalg.norm(v))
+    if angle < 1e-15:
+        return np.eye(3)
+    k = v / angle
+    kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + np.sin(angle) * kx + (1.0 - np.cos(angle)) * (kx @ kx)
+
+
+def rotation_to_axis_angle(rotation: Matrix) -> Matrix:
+    """Inverse of :func:`axis_angle_to_rotation` (via the quaternion, which is stable near pi)."""
+    q = rotation_to_quaternion(rotation)
+    sin_half = float(np.linalg.norm(q[1:]))
+    if sin_half < 1e-15:
+        return np.zeros(3)
+    angle = 2.0 * np.arctan2(sin_half, q[0])
+    return q[1:] / sin_half * angle
+
+
+# ---------------------------------------------------------------- frame conventions
+
+
+@dataclass(frozen=True)
+class FrameConvention:
+    """How a file format's coordinates relate to the canonical frame (right-handed, metres, z up).
+
+    ``axes`` maps native axis directions to canonical ones and may be a reflection (det -1): that is
+    how a left-handed frame becomes right-handed. ``metres_per_unit`` scales lengths. Points convert
+    as ``p_c = metres_per_unit * axes @ p_n``; poses conjugate by ``axes`` so that rotations stay
+    proper in both frames.
+    """
+
+    name: str
+    metres_per_unit: float
+    axes: tuple[tuple[float, float, float], ...] = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
+
+    @property
+    def axes_matrix(self) -> Matrix:
+        return np.array(self.axes, dtype=np.float64)
+
+    def points_to_canonical(self, points: Matrix) -> Matrix:
+        return (np.asarray(points, dtype=np.float64) @ self.axes_matrix.T) * self.metres_per_unit
+
+    def points_to_native(self, points: Matrix) -> Matrix:
+        return (np.asarray(points, dtype=np.float64) / self.metres_per_unit) @ self.axes_matrix
+
+    def pose_to_canonical(self, pose: Matrix) -> Matrix:
+        a = self.axes_matrix
+        return make_pose(a @ pose[:3, :3] @ a.T, self.metres_per_unit * (a @ pose[:3, 3]))
+
+    def pose_to_native(self, pose: Matrix) -> Matrix:
+        a = self.axes_matrix
+        return make_pose(a.T @ pose[:3, :3] @ a, (a.T @ pose[:3, 3]) / self.metres_per_unit)
+
+
+CANONICAL = FrameConvention("canonical", 1.0)
+
+# 3DTK "uos": centimetres, left-handed, x right, y up, z forward. Canonical x = forward (z_uos),
+# y = left (-x_uos), z = up (y_uos): the same mapping 3DTK uses when it exports to ROS.
+UOS = FrameConvention("uos", 0.01, ((0.0, 0.0, 1.0), (-1.0, 0.0, 0.0), (0.0, 1.0, 0.0)))
+
+# Right-handed, metres, y up (PLY scans such as the Stanford bunny): canonical z = y_native.
+Y_UP = FrameConvention("y_up", 1.0, ((0.0, 0.0, 1.0), (1.0, 0.0, 0.0), (0.0, 1.0, 0.0)))
+
+CONVENTIONS: dict[str, FrameConvention] = {c.name: c for c in (CANONICAL, UOS, Y_UP)}
+
+
+def uos_pose(translation_cm: Matrix, angles_deg: Matrix) -> Matrix:
+    """Native 3DTK pose from a ``.pose`` file's two lines (cm, degrees, R = Rx·Ry·Rz)."""
+    rx, ry, rz = np.radians(np.asarray(angles_deg, dtype=np.float64))
+    return pose_from_euler(np.asarray(translation_cm, dtype=np.float64), rx, ry, rz)
