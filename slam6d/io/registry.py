@@ -41,6 +41,9 @@ class ScanFormat:
     discover: Callable[[Path], list[Path]] | None = None
     # Poses for a whole directory (e.g. a KITTI poses file beside the scans), native frame, or None.
     sequence_poses: Callable[[Path, list[Path]], list[Matrix] | None] | None = None
+    # Suffixes of files that list a sequence (e.g. Stanford ``.conf``): read_sequence on such a file
+    # passes it to discover/sequence_poses in place of a directory.
+    index_suffixes: tuple[str, ...] = ()
 
 
 class NonFinitePointsWarning(UserWarning):
@@ -168,16 +171,17 @@ def read_sequence(
     convention: FrameConvention | None = None,
     progress: Callable[[int, int], None] | None = None,
 ) -> ScanSequence:
-    """Read a directory of scans (or a single file) in acquisition order.
+    """Read a directory of scans (or a single file, or a sequence index file) in acquisition order.
 
-    ``poses_file`` (KITTI 3x4 lines, native frame) overrides any poses the scans carry, which is
+    ``poses_file`` (KITTI 3x4, TUM or 4x4 lines, native frame) overrides any poses the scans carry, which is
     how odometry is supplied for formats that have none.
     """
     path = Path(path)
     if not path.exists():
         raise FormatError(path, "no such file or directory")
     fmt = resolve_format(path, format_name)
-    all_files = list_scan_files(path, fmt) if path.is_dir() else [path]
+    listing = path.is_dir() or path.suffix.lower() in fmt.index_suffixes
+    all_files = list_scan_files(path, fmt) if listing else [path]
     stop = None if last is None else last + 1
     files = all_files[first:stop]
     conv = convention or fmt.convention
@@ -189,10 +193,10 @@ def read_sequence(
     # External poses are aligned with every scan of the directory, before --first/--last slicing.
     external: list[Matrix] | None = None
     if poses_file is not None:
-        from slam6d.io.poses import read_kitti_poses
+        from slam6d.io.poses import read_poses_file
 
-        external = read_kitti_poses(poses_file)
-    elif fmt.sequence_poses is not None and path.is_dir():
+        external = read_poses_file(poses_file)
+    elif fmt.sequence_poses is not None and listing:
         external = fmt.sequence_poses(path, all_files)
     if external is not None:
         if len(external) < len(all_files):
@@ -214,7 +218,7 @@ def _load_builtin_formats() -> None:
     _LOADED = True
     import importlib
 
-    for module in ("uos", "kitti", "ply", "pcd", "xyz", "las", "e57", "vtk", "csv"):
+    for module in ("uos", "kitti", "ply", "pcd", "xyz", "las", "e57", "vtk", "csv", "conf"):
         try:
             importlib.import_module(f"slam6d.io.{module}")
         except ModuleNotFoundError as exc:  # a format module not written yet, or its library missing
