@@ -73,12 +73,17 @@ def read_uos_scan(path: Path) -> CloudData:
     return CloudData(points, intensity, pose)
 
 
-def write_uos_scan(directory: Path, index: int, native_points: np.ndarray, native_pose: Matrix | None) -> Path:
-    """Write ``scanNNN.3d`` (and ``.pose`` when a pose is given) in 3DTK's layout."""
+def write_uos_scan(
+    directory: Path, index: int, native_points: np.ndarray, native_pose: Matrix | None, decimals: int = 3
+) -> Path:
+    """Write ``scanNNN.3d`` (and ``.pose`` when a pose is given) in 3DTK's layout.
+
+    ``decimals`` of a centimetre: 2 (0.1 mm) is far below any scanner's noise and keeps files small.
+    """
     directory.mkdir(parents=True, exist_ok=True)
     path = directory / f"scan{index:03d}.3d"
     with path.open("w") as fh:
-        np.savetxt(fh, np.asarray(native_points, dtype=np.float64)[:, :3], fmt="%.3f")
+        np.savetxt(fh, np.asarray(native_points, dtype=np.float64)[:, :3], fmt=f"%.{decimals}f")
     if native_pose is not None:
         write_pose_file(path.with_suffix(".pose"), native_pose)
     return path
