@@ -33,12 +33,12 @@ run: $(STAMP)
 	$(BIN)/slam6d-workbench --host $(HOST) --port $(PORT) --sessions-dir sessions
 
 test: $(STAMP)
-	$(BIN)/ruff check slam6d app tests benchmarks
+	$(BIN)/ruff check .
 	$(BIN)/python -m pytest
 
 lint: $(STAMP)
-	$(BIN)/ruff check slam6d app tests benchmarks
-	$(BIN)/ruff format --check slam6d app tests benchmarks
+	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
 
 bench: $(STAMP)
 	$(BIN)/python benchmarks/pair.py
