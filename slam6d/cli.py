@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import json
 import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
+from pathlib import Path
 from typing import Annotated
 
 import typer
@@ -51,6 +53,121 @@ def formats() -> None:
 
 
 # -- commands are added below, one per engine entry point --
+
+
+@app.command()
+def render(
+    source: Annotated[Path, typer.Argument(help="Session folder (with session.toml), or scan directory/file.")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Output .mp4, or a directory for PNG frames.")] = Path(
+        "fly.mp4"
+    ),
+    size: Annotated[str, typer.Option(help="Frame size WIDTHxHEIGHT.")] = "1280x720",
+    fps: Annotated[float, typer.Option(help="Frames per second of the video.")] = 30.0,
+    frames: Annotated[int | None, typer.Option(help="Number of frames (default: from path length and speed).")] = None,
+    path: Annotated[Path | None, typer.Option("--path", help="Camera path JSON (default: follow the scans).")] = None,
+    save_path: Annotated[Path | None, typer.Option(help="Also write the camera path used, as JSON.")] = None,
+    fmt: FormatOption = None,
+    poses: Annotated[Path | None, typer.Option(help="KITTI 3x4 pose file for the scans.")] = None,
+    max_points: Annotated[int, typer.Option(help="Thin the map to at most this many points.")] = 2_000_000,
+    color: Annotated[str, typer.Option(help="Colour: height, scan, intensity or white.")] = "height",
+    shading: Annotated[str, typer.Option(help="Shading: edl, depth, edl+depth or none.")] = "edl",
+    point_size: Annotated[float, typer.Option(help="Splat size in metres (pixels shrink with distance).")] = 0.03,
+    height: Annotated[float, typer.Option(help="Default path: metres above the scan positions.")] = 1.0,
+    speed: Annotated[float, typer.Option(help="Default path: metres per second of video.")] = 1.0,
+) -> None:
+    """Render a fly-through video of the registered map, on the CPU (no browser or GPU needed)."""
+    from slam6d.camera_path import load_camera_path, save_camera_path, trajectory_path
+    from slam6d.render import RenderOptions, load_render_input, render_fly_through
+
+    try:
+        width, height_px = (int(v) for v in size.lower().split("x"))
+        options = RenderOptions(color_mode=color, shading=shading, point_size=point_size)
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc) if "x" not in size.lower() or "must" in str(exc) else f"bad --size {size}")
+    with progress_bar("reading scans") as update:
+        scene, session_path = load_render_input(source, fmt, poses, max_points, update)
+    camera_path = load_camera_path(path) if path else session_path
+    if camera_path is None:
+        camera_path = trajectory_path(scene.scan_poses, height=height, speed=speed)
+    if save_path:
+        save_camera_path(save_path, camera_path)
+    err.print(f"{len(scene):,} of {scene.total_points:,} points, {len(scene.scan_poses)} scans")
+    with progress_bar("rendering") as update:
+        result = render_fly_through(
+            scene, out, width, height_px, fps, frames, camera_path, options, progress=update
+        )
+    typer.echo(f"{result.out}: {result.frames} frames {width}x{height_px} at {fps:g} fps "
+               f"({result.frames_per_second:.1f} frames/s rendered)")
+
+
+@app.command()
+def simulate(
+    out: Annotated[Path, typer.Argument(help="Directory to write the uos session into.")],
+    seed: Annotated[int, typer.Option(help="Random seed: the same seed writes identical files.")] = 0,
+    scans: Annotated[int, typer.Option(help="Number of scans along the loop.")] = 20,
+    points_per_scan: Annotated[int, typer.Option(help="Laser shots per scan (181 per scan line).")] = 20_000,
+    pattern: Annotated[str, typer.Option(help="rotating (360°) or tilting (Kurt3D's 180° front view).")] = "rotating",
+    decimals: Annotated[int, typer.Option(help="Decimals of the centimetre coordinates in the files.")] = 2,
+    overwrite: Annotated[bool, typer.Option(help="Replace scans already in OUT.")] = False,
+) -> None:
+    """Write a simulated outdoor robot session (uos) with ground truth and drifting odometry."""
+    from slam6d.metrics import absolute_trajectory_error
+    from slam6d.simulate import SimulationConfig, simulate_session
+
+    config = SimulationConfig(
+        seed=seed, scans=scans, points_per_scan=points_per_scan, pattern=pattern, decimals=decimals
+    )
+    try:
+        config.validate()
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc)) from None
+    with progress_bar("simulating") as update:
+        session = simulate_session(out, config, progress=update, overwrite=overwrite)
+    drift = absolute_trajectory_error(session.odometry, session.ground_truth)
+    typer.echo(f"{len(session.scan_paths)} scans, {sum(session.point_counts)} points written to {session.directory}")
+    typer.echo(f"ground truth: {session.ground_truth_file.name}, odometry: {session.odometry_file.name} (KITTI, cm)")
+    typer.echo(f"odometry drift vs ground truth: ATE rmse {drift.rmse:.3f} m, max {drift.max:.3f} m")
+
+
+@app.command(name="eval")
+def evaluate(
+    estimate: Annotated[Path, typer.Argument(help="Estimated poses, KITTI 3x4 lines (e.g. from `slam6d run`).")],
+    reference: Annotated[Path, typer.Argument(help="Reference poses, KITTI 3x4 lines, same scans and units.")],
+    align: Annotated[bool, typer.Option(help="Rigidly align the estimate to the reference before ATE.")] = True,
+    delta: Annotated[int, typer.Option(help="RPE between scans this many steps apart.")] = 1,
+    units_per_metre: Annotated[
+        float | None, typer.Option(help="File units per metre (100 for uos cm) to also show metres.")
+    ] = None,
+    json_output: Annotated[bool, typer.Option("--json", help="Print the full result as JSON.")] = False,
+) -> None:
+    """Absolute (ATE) and relative (RPE) trajectory error of ESTIMATE against REFERENCE."""
+    from slam6d.metrics import evaluate_pose_files
+    from slam6d.trace import to_jsonable
+
+    if delta < 1:
+        raise typer.BadParameter("--delta must be at least 1")
+    if units_per_metre is not None and units_per_metre <= 0:
+        raise typer.BadParameter("--units-per-metre must be positive")
+    result = evaluate_pose_files(estimate, reference, align=align, delta=delta)
+    if json_output:
+        typer.echo(json.dumps(to_jsonable(result), indent=1))
+        return
+
+    def length(value: float) -> str:
+        metres = f" ({value / units_per_metre:.4f} m)" if units_per_metre else ""
+        return f"{value:.4f}{metres}"
+
+    ate, rpe = result.ate, result.rpe
+    typer.echo(
+        f"{ate.count} poses; lengths in the files' units"
+        + (f", {units_per_metre:g} per metre" if units_per_metre else "")
+    )
+    typer.echo(f"ATE ({'rigidly aligned' if ate.aligned else 'not aligned'}):")
+    for name in ("rmse", "mean", "median", "max"):
+        typer.echo(f"  {name:7s} {length(getattr(ate, name))}")
+    typer.echo(f"RPE (delta {rpe.delta}, {rpe.count} pairs):")
+    typer.echo(f"  translation rmse {length(rpe.translation_rmse)}, max {length(rpe.translation_max)}")
+    typer.echo(f"  rotation    rmse {rpe.rotation_rmse_deg:.4f} deg, max {rpe.rotation_max_deg:.4f} deg")
 
 
 def main() -> None:
