@@ -1,0 +1,695 @@
+"""Software point-cloud renderer for fly-through videos, on the CPU without a browser or GPU.
+
+Registered points are projected through a pinhole camera into a z-buffer; each point becomes a
+square splat whose side shrinks with distance (near points must cover the gaps between them, far
+ones must not smear). Eye-dome lighting (EDL) darkens pixels that lie behind their neighbours in
+log depth, so edges and surfaces read even when every point has the same colour; optional depth
+fog fades distant points into the background.
+
+Camera convention (OpenCV, the one viser uses too): in the camera frame x points right, y down and
+z forward (the viewing direction). ``Camera.pose`` is ``world_from_camera`` in the canonical world
+frame (right-handed, metres, z up). A camera-frame point (x, y, z) with z > 0 lands at
+``u = fx x / z + cx``, ``v = fy y / z + cy``; pixel (col, row) covers ``[col, col+1) x [row, row+1)``,
+so its centre is at (col + 0.5, row + 0.5) and ``cx = width / 2`` is the middle of the image.
+
+The z-buffer is a numba kernel: every thread splats its share of the points into its own buffer of
+packed (depth, point index) 64-bit keys, so there are no write races and no atomics; a parallel
+pass then takes the per-pixel minimum. Points are stored relative to a scene origin in float32
+and sorted along a Morton curve, which keeps neighbouring points' z-buffer writes in cache.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import os
+import shutil
+import tempfile
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Literal
+
+import numba
+import numpy as np
+from numba import njit, prange
+from numpy.typing import NDArray
+
+from slam6d.errors import Slam6dError
+from slam6d.geometry import Matrix, invert, make_pose
+from slam6d.scan import ScanSequence
+
+if TYPE_CHECKING:
+    from slam6d.camera_path import CameraPath
+
+ColorMode = Literal["height", "scan", "intensity", "white"]
+Shading = Literal["edl", "depth", "edl+depth", "none"]
+COLOR_MODES: tuple[str, ...] = ("height", "scan", "intensity", "white")
+SHADINGS: tuple[str, ...] = ("edl", "depth", "edl+depth", "none")
+ProgressFn = Callable[[int, int], None]
+CancelFn = Callable[[], bool]
+
+# Depth is stored in the upper 32 bits of a z-buffer key in units of 10 µm: exact enough to order
+# points 0.1 mm apart, and far enough (42 km) for any scan. The lower 32 bits hold the point index.
+_DEPTH_UNITS_PER_METRE = 1.0e5
+_EMPTY_KEY = np.uint64(0xFFFFFFFFFFFFFFFF)
+
+
+class RenderCancelledError(Slam6dError):
+    """The caller's cancel check returned True; no partial output is left behind."""
+
+
+# ---------------------------------------------------------------- camera
+
+
+@dataclass
+class Camera:
+    """A pinhole camera: ``pose`` is world_from_camera (OpenCV axes: x right, y down, z forward)."""
+
+    pose: Matrix
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+
+    @classmethod
+    def from_fov(cls, pose: Matrix, width: int, height: int, fov_deg: float = 60.0) -> Camera:
+        """Square pixels, centred principal point, ``fov_deg`` the *vertical* field of view (as viser's)."""
+        if not 1.0 <= fov_deg < 179.0:
+            raise ValueError(f"field of view must be within [1, 179) degrees, got {fov_deg}")
+        f = 0.5 * height / math.tan(math.radians(fov_deg) / 2.0)
+        return cls(np.asarray(pose, dtype=np.float64), f, f, width / 2.0, height / 2.0, int(width), int(height))
+
+    @property
+    def fov_deg(self) -> float:
+        return math.degrees(2.0 * math.atan(0.5 * self.height / self.fy))
+
+    def project(self, points: NDArray[np.floating]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Pixel coordinates (N, 2) and camera-frame depth (N,) of world points, for checks and overlays."""
+        camera_from_world = invert(self.pose)
+        pc = (
+            np.asarray(points, dtype=np.float64).reshape(-1, 3) @ camera_from_world[:3, :3].T + camera_from_world[:3, 3]
+        )
+        with np.errstate(divide="ignore", invalid="ignore"):
+            uv = np.stack([self.fx * pc[:, 0] / pc[:, 2] + self.cx, self.fy * pc[:, 1] / pc[:, 2] + self.cy], axis=1)
+        return uv, pc[:, 2]
+
+
+def look_at(eye: Sequence[float], target: Sequence[float], up: Sequence[float] = (0.0, 0.0, 1.0)) -> Matrix:
+    """world_from_camera pose at ``eye`` looking at ``target`` with ``up`` appearing up in the image.
+
+    When the viewing direction is (anti)parallel to ``up`` the roll is undefined; another axis is
+    borrowed so the result is still a proper rotation rather than NaN.
+    """
+    eye_v = np.asarray(eye, dtype=np.float64)
+    forward = np.asarray(target, dtype=np.float64) - eye_v
+    norm = np.linalg.norm(forward)
+    if norm < 1e-12:
+        raise ValueError("look_at: eye and target coincide")
+    forward /= norm
+    up_v = np.asarray(up, dtype=np.float64)
+    right = np.cross(forward, up_v)
+    if np.linalg.norm(right) < 1e-9 * max(np.linalg.norm(up_v), 1e-300):
+        helper = np.array([1.0, 0.0, 0.0]) if abs(forward[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+        right = np.cross(forward, helper)
+    right /= np.linalg.norm(right)
+    down = np.cross(forward, right)
+    return make_pose(np.stack([right, down, forward], axis=1), eye_v)
+
+
+# ---------------------------------------------------------------- scene
+
+
+@dataclass
+class PointScene:
+    """Points prepared for rendering: float32 offsets from ``origin``, Morton-ordered, with per-point attributes."""
+
+    origin: NDArray[np.float64]
+    points: NDArray[np.float32]
+    scan_index: NDArray[np.int32]
+    intensity: NDArray[np.float32] | None
+    scan_poses: list[Matrix] = field(default_factory=list)
+    scan_names: list[str] = field(default_factory=list)
+    total_points: int = 0  # before downsampling
+
+    def __len__(self) -> int:
+        return int(self.points.shape[0])
+
+    @property
+    def scan_positions(self) -> NDArray[np.float64]:
+        return np.array([p[:3, 3] for p in self.scan_poses], dtype=np.float64).reshape(-1, 3)
+
+    def world_points(self) -> NDArray[np.float64]:
+        return self.points.astype(np.float64) + self.origin
+
+    def bounds(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        if len(self) == 0:
+            return self.origin.copy(), self.origin.copy()
+        return self.points.min(axis=0).astype(np.float64) + self.origin, self.points.max(axis=0).astype(
+            np.float64
+        ) + self.origin
+
+
+def _morton_order(points: NDArray[np.float64], cell: float) -> NDArray[np.intp]:
+    """Order points along a Z-order curve of ``cell``-sized voxels, so nearby points are nearby in memory."""
+    q = np.floor((points - points.min(axis=0)) / cell).astype(np.int64)
+    q = np.clip(q, 0, (1 << 21) - 1).astype(np.uint64)
+    code = np.zeros(len(points), dtype=np.uint64)
+    for axis in range(3):
+        v = q[:, axis]
+        v = (v | (v << np.uint64(32))) & np.uint64(0x1F00000000FFFF)
+        v = (v | (v << np.uint64(16))) & np.uint64(0x1F0000FF0000FF)
+        v = (v | (v << np.uint64(8))) & np.uint64(0x100F00F00F00F00F)
+        v = (v | (v << np.uint64(4))) & np.uint64(0x10C30C30C30C30C3)
+        v = (v | (v << np.uint64(2))) & np.uint64(0x1249249249249249)
+        code |= v << np.uint64(axis)
+    return np.argsort(code, kind="stable")
+
+
+def scene_from_points(
+    points: NDArray[np.floating],
+    scan_index: NDArray[np.integer] | None = None,
+    intensity: NDArray[np.floating] | None = None,
+    scan_poses: list[Matrix] | None = None,
+    scan_names: list[str] | None = None,
+    total_points: int | None = None,
+) -> PointScene:
+    """Wrap world points (canonical frame) for rendering."""
+    world = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    n = world.shape[0]
+    index = np.zeros(n, dtype=np.int32) if scan_index is None else np.asarray(scan_index, dtype=np.int32)
+    if index.shape != (n,) or (intensity is not None and np.shape(intensity) != (n,)):
+        raise ValueError("scan_index and intensity must have one entry per point")
+    if n == 0:
+        return PointScene(np.zeros(3), np.zeros((0, 3), np.float32), index, None, scan_poses or [], scan_names or [], 0)
+    lo, hi = world.min(axis=0), world.max(axis=0)
+    origin = 0.5 * (lo + hi)
+    extent = float(np.max(hi - lo))
+    order = _morton_order(world, max(extent / (1 << 10), 1e-3))
+    return PointScene(
+        origin=origin,
+        points=np.ascontiguousarray((world[order] - origin).astype(np.float32)),
+        scan_index=np.ascontiguousarray(index[order]),
+        intensity=None if intensity is None else np.asarray(intensity, dtype=np.float32)[order],
+        scan_poses=list(scan_poses or []),
+        scan_names=list(scan_names or []),
+        total_points=n if total_points is None else total_points,
+    )
+
+
+def scene_from_sequence(sequence: ScanSequence, max_points: int | None = 2_000_000, seed: int = 0) -> PointScene:
+    """Registered points of every scan (at its current pose), uniformly thinned to at most ``max_points``.
+
+    Thinning is a random sample with the same fraction for every scan, so no scan vanishes and the
+    result does not depend on the scan order. Scans without intensity get NaN there (shown grey).
+    """
+    total = sum(len(scan) for scan in sequence)
+    fraction = 1.0 if not max_points or total <= max_points else max_points / total
+    rng = np.random.default_rng(seed)
+    any_intensity = any(scan.intensity is not None for scan in sequence)
+    chunks, indices, intensities = [], [], []
+    for i, scan in enumerate(sequence):
+        keep = slice(None) if fraction >= 1.0 else rng.random(len(scan)) < fraction
+        pts = scan.world_points()[keep]
+        chunks.append(pts)
+        indices.append(np.full(len(pts), i, dtype=np.int32))
+        if any_intensity:
+            values = scan.intensity[keep] if scan.intensity is not None else np.full(len(pts), np.nan, np.float32)
+            intensities.append(np.asarray(values, dtype=np.float32))
+    points = np.concatenate(chunks) if chunks else np.zeros((0, 3))
+    return scene_from_points(
+        points,
+        np.concatenate(indices) if indices else None,
+        np.concatenate(intensities) if any_intensity else None,
+        [scan.pose.copy() for scan in sequence],
+        [scan.name for scan in sequence],
+        total,
+    )
+
+
+def load_render_input(
+    source: Path | str,
+    format_name: str | None = None,
+    poses_file: Path | None = None,
+    max_points: int | None = 2_000_000,
+    progress: ProgressFn | None = None,
+) -> tuple[PointScene, CameraPath | None]:
+    """Points with their latest poses from a session folder or a scan directory/file, plus any saved path.
+
+    A folder holding ``session.toml`` is opened as a workbench session (its latest registration and
+    its saved camera path, if any); anything else is read with :func:`slam6d.io.read_sequence`.
+    """
+    source = Path(source)
+    camera_path: CameraPath | None = None
+    if source.is_dir() and (source / "session.toml").is_file():
+        try:
+            from slam6d.session import Session
+        except ModuleNotFoundError as exc:  # pragma: no cover - only while sessions are not installed
+            raise Slam6dError(f"{source}: is a session folder, but this installation cannot open sessions") from exc
+        session = Session.open(source)
+        sequence = session.load_sequence(progress)
+        camera_path = _session_camera_path(session)
+    else:
+        from slam6d.io import read_sequence
+
+        sequence = read_sequence(source, format_name, poses_file=poses_file, progress=progress)
+    return scene_from_sequence(sequence, max_points), camera_path
+
+
+def _session_camera_path(session: object) -> CameraPath | None:
+    """The path a user saved in the session, whichever form the session hands it over in."""
+    from slam6d.camera_path import CameraPath, camera_path_from_dict, load_camera_path
+
+    getter = getattr(session, "camera_path", None)
+    saved = getter() if callable(getter) else getter
+    if saved is None or isinstance(saved, CameraPath):
+        return saved
+    if isinstance(saved, dict):
+        return camera_path_from_dict(saved, source="session")
+    if isinstance(saved, str | Path):
+        return load_camera_path(Path(saved))
+    raise Slam6dError(f"session camera path has an unexpected type {type(saved).__name__}")
+
+
+# ---------------------------------------------------------------- colours
+
+
+def _ramp(stops: Sequence[tuple[float, float, float]], n: int = 256) -> NDArray[np.uint8]:
+    s = np.asarray(stops, dtype=np.float64)
+    x = np.linspace(0.0, 1.0, n)
+    xp = np.linspace(0.0, 1.0, len(s))
+    return np.stack([np.interp(x, xp, s[:, c]) for c in range(3)], axis=1).round().astype(np.uint8)
+
+
+# Blue-green-yellow after viridis, with its dark violet end lifted so low points stay clear of a dark background.
+_HEIGHT_LUT = _ramp([(72, 60, 170), (49, 104, 180), (33, 145, 140), (94, 201, 98), (253, 231, 37)])
+_INTENSITY_LUT = _ramp([(70, 70, 80), (150, 150, 155), (245, 240, 225)])
+_NO_DATA_GREY = np.array([140, 140, 140], dtype=np.uint8)
+
+
+def _through_lut(values: NDArray[np.floating], lut: NDArray[np.uint8], low_pct: float, high_pct: float) -> NDArray:
+    finite = np.isfinite(values)
+    out = np.empty((len(values), 3), dtype=np.uint8)
+    out[:] = _NO_DATA_GREY
+    if finite.any():
+        lo, hi = np.percentile(values[finite], [low_pct, high_pct])
+        scaled = (values[finite] - lo) / max(hi - lo, 1e-9)
+        out[finite] = lut[np.clip(scaled * (len(lut) - 1), 0, len(lut) - 1).astype(np.intp)]
+    return out
+
+
+def scan_palette(count: int) -> NDArray[np.uint8]:
+    """Distinct, stable colours per scan: hues spaced by the golden angle, so neighbours differ."""
+    hue = (np.arange(count) * 0.618033988749895) % 1.0
+    sat, val = 0.65, 0.95
+    k = (np.array([5.0, 3.0, 1.0])[None, :] + hue[:, None] * 6.0) % 6.0
+    rgb = val - val * sat * np.clip(np.minimum(k, 4.0 - k), 0.0, 1.0)
+    return (rgb * 255).round().astype(np.uint8)
+
+
+def point_colors(scene: PointScene, mode: str) -> NDArray[np.uint8]:
+    """Per-point RGB for a colour mode; percentiles (not min/max) so outliers do not wash the ramp out."""
+    if mode == "height":
+        return _through_lut(scene.points[:, 2].astype(np.float64), _HEIGHT_LUT, 2.0, 98.0)
+    if mode == "scan":
+        count = max(len(scene.scan_poses), int(scene.scan_index.max()) + 1 if len(scene) else 1)
+        return scan_palette(count)[scene.scan_index]
+    if mode == "intensity":
+        if scene.intensity is None:
+            raise Slam6dError("colour mode 'intensity': this data carries no intensity; use height, scan or white")
+        return _through_lut(scene.intensity.astype(np.float64), _INTENSITY_LUT, 1.0, 99.0)
+    if mode == "white":
+        return np.full((len(scene), 3), 225, dtype=np.uint8)
+    raise ValueError(f"unknown colour mode '{mode}'; choose one of {', '.join(COLOR_MODES)}")
+
+
+# ---------------------------------------------------------------- kernels
+
+
+@njit(parallel=True, fastmath=True, cache=True)
+def _splat_kernel(points, rot, trans, fx, fy, cx, cy, near, size_scale, max_size, buffers):  # pragma: no cover
+    """Each of ``buffers.shape[0]`` chunks of points splats into its own z-buffer of packed keys."""
+    n = points.shape[0]
+    chunks, height, width = buffers.shape
+    per_chunk = (n + chunks - 1) // chunks
+    empty = np.uint64(0xFFFFFFFFFFFFFFFF)
+    r00, r01, r02, t0 = rot[0, 0], rot[0, 1], rot[0, 2], trans[0]
+    r10, r11, r12, t1 = rot[1, 0], rot[1, 1], rot[1, 2], trans[1]
+    r20, r21, r22, t2 = rot[2, 0], rot[2, 1], rot[2, 2], trans[2]
+    max_depth = 4294967295.0 / 1.0e5
+    for c in prange(chunks):
+        buf = buffers[c]
+        buf[:] = empty
+        start = c * per_chunk
+        stop = min(n, start + per_chunk)
+        for i in range(start, stop):
+            x = points[i, 0]
+            y = points[i, 1]
+            z = points[i, 2]
+            zc = r20 * x + r21 * y + r22 * z + t2
+            if zc <= near:
+                continue
+            inv = 1.0 / zc
+            u = fx * (r00 * x + r01 * y + r02 * z + t0) * inv + cx
+            v = fy * (r10 * x + r11 * y + r12 * z + t1) * inv + cy
+            key = (np.uint64(min(zc, max_depth) * 1.0e5) << np.uint64(32)) | np.uint64(i)
+            size = int(size_scale * inv + 0.5)
+            if size <= 1:
+                if 0.0 <= u < width and 0.0 <= v < height:
+                    col = int(u)
+                    row = int(v)
+                    if key < buf[row, col]:
+                        buf[row, col] = key
+                continue
+            if size > max_size:
+                size = max_size
+            half = 0.5 * (size - 1)
+            uf = u - half
+            vf = v - half
+            if uf >= width or vf >= height or uf + size <= 0.0 or vf + size <= 0.0:
+                continue
+            c0 = math.floor(uf)
+            r0 = math.floor(vf)
+            c1 = min(c0 + size, width)
+            r1 = min(r0 + size, height)
+            c0 = max(c0, 0)
+            r0 = max(r0, 0)
+            for r in range(r0, r1):
+                for cc in range(c0, c1):
+                    if key < buf[r, cc]:
+                        buf[r, cc] = key
+
+
+@njit(parallel=True, fastmath=True, cache=True)
+def _resolve_kernel(buffers, depth, log_depth, index):  # pragma: no cover
+    """Per-pixel minimum over the chunk buffers -> depth (inf if empty), its log2 for EDL, point index (-1)."""
+    chunks, height, width = buffers.shape
+    empty = np.uint64(0xFFFFFFFFFFFFFFFF)
+    low_mask = np.uint64(0xFFFFFFFF)
+    for r in prange(height):
+        for c in range(width):
+            best = buffers[0, r, c]
+            for k in range(1, chunks):
+                if buffers[k, r, c] < best:
+                    best = buffers[k, r, c]
+            if best == empty:
+                depth[r, c] = np.inf
+                log_depth[r, c] = np.inf
+                index[r, c] = -1
+            else:
+                d = max(np.float32((best >> np.uint64(32)) * 1.0e-5), np.float32(1e-5))
+                depth[r, c] = d
+                log_depth[r, c] = math.log2(d)
+                index[r, c] = np.int64(best & low_mask)
+
+
+@njit(parallel=True, fastmath=True, cache=True)
+def _shade_kernel(
+    depth, log_depth, index, colors, background, edl_strength, edl_offsets, fog_distance, image
+):  # pragma: no cover
+    """Colour every pixel: point colour x EDL factor, faded towards the background by depth fog."""
+    height, width = depth.shape
+    neighbours = edl_offsets.shape[0]
+    b0, b1, b2 = background[0], background[1], background[2]
+    for r in prange(height):
+        for c in range(width):
+            i = index[r, c]
+            if i < 0:
+                image[r, c, 0] = np.uint8(b0)
+                image[r, c, 1] = np.uint8(b1)
+                image[r, c, 2] = np.uint8(b2)
+                continue
+            shade = 1.0
+            if edl_strength > 0.0:
+                log_d = log_depth[r, c]
+                response = 0.0
+                for k in range(neighbours):
+                    rr = r + edl_offsets[k, 0]
+                    cc = c + edl_offsets[k, 1]
+                    if 0 <= rr < height and 0 <= cc < width:
+                        diff = log_d - log_depth[rr, cc]
+                        if diff > 0.0:  # a background neighbour (inf) gives -inf: no darkening
+                            response += diff
+                shade = math.exp(-response * edl_strength / neighbours)
+            fog = 1.0
+            if fog_distance > 0.0:
+                fog = math.exp(-depth[r, c] / fog_distance)
+            k0 = shade * fog
+            k1 = 1.0 - fog
+            image[r, c, 0] = np.uint8(min(255.0, colors[i, 0] * k0 + b0 * k1 + 0.5))
+            image[r, c, 1] = np.uint8(min(255.0, colors[i, 1] * k0 + b1 * k1 + 0.5))
+            image[r, c, 2] = np.uint8(min(255.0, colors[i, 2] * k0 + b2 * k1 + 0.5))
+
+
+# ---------------------------------------------------------------- renderer
+
+
+@dataclass
+class RenderOptions:
+    """How points look. ``point_size`` is a splat's world size in metres (its pixel size follows distance)."""
+
+    color_mode: str = "height"
+    shading: str = "edl+depth"
+    point_size: float = 0.03
+    max_splat: int = 8  # pixels; caps the cost and the blockiness of points right in front of the camera
+    edl_strength: float = 20.0
+    edl_radius: int = 1
+    fog_distance: float | None = None  # metres; None: a third of the scene's (robust) extent
+    background: tuple[int, int, int] = (18, 20, 26)
+    near: float = 0.05
+
+    def __post_init__(self) -> None:
+        if self.color_mode not in COLOR_MODES:
+            raise ValueError(f"unknown colour mode '{self.color_mode}'; choose one of {', '.join(COLOR_MODES)}")
+        if self.shading not in SHADINGS:
+            raise ValueError(f"unknown shading '{self.shading}'; choose one of {', '.join(SHADINGS)}")
+        if self.point_size < 0 or self.max_splat < 1 or self.edl_radius < 1 or self.near <= 0:
+            raise ValueError("point_size must be >= 0, max_splat and edl_radius >= 1, near > 0")
+
+
+def _default_fog(scene: PointScene) -> float:
+    """A third of the scene's extent, measured between percentiles so stray far returns do not count."""
+    if len(scene) == 0:
+        return 1.0
+    sample = scene.points[:: max(1, len(scene) // 100_000)]
+    lo, hi = np.percentile(sample, [2.0, 98.0], axis=0)
+    return max(float(np.max(hi - lo)) / 3.0, 1.0)
+
+
+class Renderer:
+    """Renders one scene repeatedly; keeps its buffers between frames so a video allocates once."""
+
+    def __init__(self, scene: PointScene, width: int, height: int, options: RenderOptions | None = None) -> None:
+        if width < 1 or height < 1:
+            raise ValueError(f"image size must be positive, got {width}x{height}")
+        self.scene = scene
+        self.width, self.height = int(width), int(height)
+        self.options = options or RenderOptions()
+        self.colors = np.ascontiguousarray(point_colors(scene, self.options.color_mode))
+        fog = self.options.fog_distance if self.options.fog_distance is not None else _default_fog(scene)
+        self._fog = fog if self.options.shading in ("depth", "edl+depth") else 0.0
+        self._edl = self.options.edl_strength if self.options.shading in ("edl", "edl+depth") else 0.0
+        chunks = max(1, numba.get_num_threads())
+        self._buffers = np.empty((chunks, self.height, self.width), dtype=np.uint64)
+        self.depth = np.empty((self.height, self.width), dtype=np.float32)
+        self._log_depth = np.empty((self.height, self.width), dtype=np.float32)
+        self.index = np.empty((self.height, self.width), dtype=np.int64)
+        self._background = np.array(self.options.background, dtype=np.float64)
+        # The eight neighbours EDL compares each pixel with, ``edl_radius`` pixels away.
+        ring = [(1, 0), (-1, 0), (0, 1), (0, -1), (1, 1), (-1, -1), (1, -1), (-1, 1)]
+        self._edl_offsets = np.array(ring, dtype=np.int64) * int(self.options.edl_radius)
+
+    def camera(self, pose: Matrix, fov_deg: float = 60.0) -> Camera:
+        return Camera.from_fov(pose, self.width, self.height, fov_deg)
+
+    def rasterize(self, camera: Camera) -> tuple[NDArray[np.float32], NDArray[np.int64]]:
+        """Z-buffer only: per-pixel depth along the camera's z (inf where empty) and point index (-1)."""
+        if (camera.width, camera.height) != (self.width, self.height):
+            raise ValueError(f"camera is {camera.width}x{camera.height}, renderer is {self.width}x{self.height}")
+        camera_from_world = invert(camera.pose)
+        rot = camera_from_world[:3, :3]
+        trans = rot @ self.scene.origin + camera_from_world[:3, 3]  # points are stored relative to the origin
+        if len(self.scene) == 0:
+            self.depth.fill(np.inf)
+            self._log_depth.fill(np.inf)
+            self.index.fill(-1)
+            return self.depth, self.index
+        _splat_kernel(
+            self.scene.points,
+            np.ascontiguousarray(rot),
+            np.ascontiguousarray(trans),
+            float(camera.fx),
+            float(camera.fy),
+            float(camera.cx),
+            float(camera.cy),
+            float(self.options.near),
+            float(self.options.point_size * camera.fx),
+            int(self.options.max_splat),
+            self._buffers,
+        )
+        _resolve_kernel(self._buffers, self.depth, self._log_depth, self.index)
+        return self.depth, self.index
+
+    def render(self, camera: Camera, out: NDArray[np.uint8] | None = None) -> NDArray[np.uint8]:
+        """An (height, width, 3) RGB image of the scene seen from ``camera``."""
+        self.rasterize(camera)
+        image = out if out is not None else np.empty((self.height, self.width, 3), dtype=np.uint8)
+        colors = self.colors if len(self.colors) else np.zeros((1, 3), dtype=np.uint8)
+        _shade_kernel(
+            self.depth,
+            self._log_depth,
+            self.index,
+            colors,
+            self._background,
+            float(self._edl),
+            self._edl_offsets,
+            float(self._fog),
+            image,
+        )
+        return image
+
+
+# ---------------------------------------------------------------- output
+
+
+class FrameSink:
+    """Where frames go: an H.264 MP4 (via imageio-ffmpeg's bundled ffmpeg) or numbered PNG files.
+
+    Output is written to a temporary name and moved into place by :meth:`commit`, so a cancelled
+    or failed render never leaves a truncated video that looks finished.
+    """
+
+    def __init__(self, out: Path | str, width: int, height: int, fps: float, quality: float = 7.0) -> None:
+        self.out = Path(out)
+        self.width, self.height, self.fps = width, height, fps
+        self.count = 0
+        self.is_video = self.out.suffix.lower() in (".mp4", ".m4v", ".mov", ".mkv")
+        if self.out.suffix and not self.is_video:
+            raise Slam6dError(f"{self.out}: output must be a .mp4 file or a directory for PNG frames")
+        if not self.out.parent.is_dir():
+            raise Slam6dError(f"{self.out}: the folder {self.out.parent} does not exist")
+        if self.is_video:
+            if width % 2 or height % 2:
+                raise Slam6dError(f"{self.out}: H.264 needs an even width and height, got {width}x{height}")
+            import imageio_ffmpeg
+
+            handle, tmp = tempfile.mkstemp(suffix=self.out.suffix, prefix=f".{self.out.stem}-", dir=self.out.parent)
+            os.close(handle)
+            self._tmp = Path(tmp)
+            self._writer = imageio_ffmpeg.write_frames(
+                str(self._tmp),
+                (width, height),
+                fps=fps,
+                codec="libx264",
+                pix_fmt_out="yuv420p",
+                quality=quality,
+                macro_block_size=1,
+                ffmpeg_log_level="error",
+                output_params=["-movflags", "+faststart"],
+            )
+            self._writer.send(None)
+        else:
+            self._tmp = Path(tempfile.mkdtemp(prefix=f".{self.out.name}-", dir=self.out.parent))
+
+    def write(self, image: NDArray[np.uint8]) -> None:
+        if self.is_video:
+            self._writer.send(np.ascontiguousarray(image))
+        else:
+            from PIL import Image
+
+            Image.fromarray(image).save(self._tmp / f"frame_{self.count:06d}.png", compress_level=1)
+        self.count += 1
+
+    def commit(self) -> Path:
+        if self.is_video:
+            self._writer.close()
+            os.replace(self._tmp, self.out)
+        else:
+            self.out.mkdir(exist_ok=True)
+            for frame in sorted(self._tmp.iterdir()):
+                os.replace(frame, self.out / frame.name)
+            self._tmp.rmdir()
+        return self.out
+
+    def discard(self) -> None:
+        if self.is_video:
+            with contextlib.suppress(Exception):  # ffmpeg may already have died; the file goes anyway
+                self._writer.close()
+            self._tmp.unlink(missing_ok=True)
+        else:
+            shutil.rmtree(self._tmp, ignore_errors=True)
+
+
+@dataclass
+class RenderResult:
+    out: Path
+    frames: int
+    width: int
+    height: int
+    fps: float
+    seconds: float
+    points: int
+
+    @property
+    def frames_per_second(self) -> float:
+        return self.frames / self.seconds if self.seconds > 0 else float("inf")
+
+
+def render_frames(
+    renderer: Renderer,
+    cameras: Iterable[Camera],
+    out: Path | str,
+    fps: float = 30.0,
+    total: int | None = None,
+    progress: ProgressFn | None = None,
+    cancel: CancelFn | None = None,
+) -> RenderResult:
+    """Render each camera to ``out`` (MP4 or PNG folder); ``cancel`` is checked before every frame."""
+    import time
+
+    if fps <= 0:
+        raise ValueError(f"fps must be positive, got {fps}")
+    sink = FrameSink(out, renderer.width, renderer.height, fps)
+    start = time.perf_counter()
+    image = np.empty((renderer.height, renderer.width, 3), dtype=np.uint8)
+    try:
+        for camera in cameras:
+            if cancel is not None and cancel():
+                raise RenderCancelledError(f"{out}: render cancelled after {sink.count} frame(s)")
+            sink.write(renderer.render(camera, image))
+            if progress is not None:
+                progress(sink.count, total or sink.count)
+        if sink.count == 0:
+            raise Slam6dError(f"{out}: the camera path produced no frames")
+        path = sink.commit()
+    except BaseException:
+        sink.discard()
+        raise
+    return RenderResult(
+        path, sink.count, renderer.width, renderer.height, fps, time.perf_counter() - start, len(renderer.scene)
+    )
+
+
+def render_fly_through(
+    scene: PointScene,
+    out: Path | str,
+    width: int = 1280,
+    height: int = 720,
+    fps: float = 30.0,
+    frames: int | None = None,
+    path: CameraPath | None = None,
+    options: RenderOptions | None = None,
+    progress: ProgressFn | None = None,
+    cancel: CancelFn | None = None,
+) -> RenderResult:
+    """The one-call fly-through: the given path, or by default one following the scan trajectory."""
+    from slam6d.camera_path import trajectory_path
+
+    if path is None:
+        path = trajectory_path(scene.scan_poses, scene=scene)
+    samples = path.sample(frames=frames, fps=fps)
+    renderer = Renderer(scene, width, height, options)
+    cameras = (renderer.camera(pose, fov) for pose, fov in samples)
+    return render_frames(renderer, cameras, out, fps, len(samples), progress, cancel)
