@@ -343,6 +343,7 @@ def _building(mesh: MeshBuilder, terrain: Terrain, xy: NDArray[np.float64], size
 
 
 def build_scene(config: SimulationConfig, rng: np.random.Generator) -> Scene:
+    """The world of a session; drawn first from the seeded generator, so ``default_rng(seed)`` rebuilds it."""
     terrain = Terrain.random(rng, config.terrain_amplitude)
     path = LoopPath.create(config.loop_length, config.loop_width, rng)
     mesh = MeshBuilder()

@@ -2,11 +2,17 @@
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 import numpy as np
 import pytest
+from typer.testing import CliRunner
 
-from slam6d.errors import Slam6dError
+from slam6d.cli import app
+from slam6d.errors import FormatError, Slam6dError
 from slam6d.geometry import invert, pose_from_xyzrpy
+from slam6d.io.poses import write_kitti_poses
 from slam6d.metrics import (
     absolute_trajectory_error,
     evaluate_trajectory,
@@ -118,3 +124,27 @@ def test_results_serialise_to_json() -> None:
     assert set(data) == {"ate", "rpe"}
     assert data["ate"]["count"] == 24 and len(data["ate"]["errors"]) == 24
     assert data["rpe"]["delta"] == 1
+
+
+def test_eval_command_reports_ate_and_rpe_in_file_units(tmp_path: Path) -> None:
+    """Poses in cm with a constant 30/40 cm offset: ATE 50 cm unaligned, 0 aligned; RPE 0."""
+    reference = [pose_from_xyzrpy(100 * p[0, 3], 100 * p[1, 3], 100 * p[2, 3], 0, 0, 0) for p in loop_trajectory()]
+    estimate = [pose_from_xyzrpy(30.0, 40.0, 0.0, 0, 0, 0) @ p for p in reference]
+    write_kitti_poses(tmp_path / "ref.txt", reference)
+    write_kitti_poses(tmp_path / "est.txt", estimate)
+    runner = CliRunner()
+    args = ["eval", str(tmp_path / "est.txt"), str(tmp_path / "ref.txt")]
+    raw = runner.invoke(app, [*args, "--no-align", "--units-per-metre", "100"])
+    assert raw.exit_code == 0, raw.output
+    assert "24 poses" in raw.output and "not aligned" in raw.output
+    assert "rmse    50.0000 (0.5000 m)" in raw.output
+    aligned = runner.invoke(app, [*args, "--json"])
+    data = json.loads(aligned.output)
+    assert data["ate"]["rmse"] == pytest.approx(0.0, abs=1e-6)
+    assert data["rpe"]["translation_rmse"] == pytest.approx(0.0, abs=1e-6)
+
+    write_kitti_poses(tmp_path / "short.txt", reference[:20])
+    short = runner.invoke(app, ["eval", str(tmp_path / "short.txt"), str(tmp_path / "ref.txt")])
+    assert isinstance(short.exception, FormatError)
+    assert "short.txt" in str(short.exception) and "ref.txt" in str(short.exception)
+    assert "20 poses" in str(short.exception) and "24" in str(short.exception)
