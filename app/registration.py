@@ -1,0 +1,95 @@
+"""Running the engine's registration pipeline for a session, as a job or step by step.
+
+Engine parameters come from ``[engine]`` in session.toml, overridden per run; unknown names are
+refused (a typo must not silently run with defaults). The pipeline works on its own copy of the
+scans so the 3D view keeps showing the committed revision until the run is stored.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+from app.jobs import Cancel, Progress, Work
+from slam6d.errors import Slam6dError
+from slam6d.scan import Scan, ScanSequence
+from slam6d.trace import to_jsonable
+
+
+def _pipeline_module():  # type: ignore[no-untyped-def]
+    try:
+        from slam6d import pipeline
+    except ModuleNotFoundError as exc:
+        if exc.name == "slam6d.pipeline":
+            raise Slam6dError("the registration pipeline is not available in this installation") from None
+        raise
+    return pipeline
+
+
+def _build(cls: type, values: dict[str, Any], what: str) -> Any:
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    unknown = sorted(set(values) - set(fields))
+    if unknown:
+        raise ValueError(f"unknown {what} parameter(s): {', '.join(unknown)}; known: {', '.join(sorted(fields))}")
+    kwargs = {}
+    for name, value in values.items():
+        default = getattr(cls(), name)
+        if dataclasses.is_dataclass(default) and isinstance(value, dict):
+            value = _build(type(default), value, f"{what}.{name}")
+        elif isinstance(default, tuple) and isinstance(value, list):
+            value = tuple(value)
+        kwargs[name] = value
+    return cls(**kwargs)
+
+
+def pipeline_config(engine: dict[str, Any], overrides: dict[str, Any] | None = None) -> Any:
+    """PipelineConfig from session parameters; ``icp.*`` keys may be given flat as ``icp_<name>`` too."""
+    pipeline = _pipeline_module()
+    values: dict[str, Any] = {}
+    for source in (engine, overrides or {}):
+        for key, value in source.items():
+            if key.startswith("icp_"):
+                values.setdefault("icp", {})[key[4:]] = value
+            elif key == "icp" and isinstance(value, dict):
+                values.setdefault("icp", {}).update(value)
+            else:
+                values[key] = value
+    return _build(pipeline.PipelineConfig, values, "pipeline")
+
+
+def working_copy(sequence: ScanSequence) -> ScanSequence:
+    """Scans sharing the (read-only) point arrays but with their own poses."""
+    scans = [
+        Scan(s.points, s.pose.copy(), name=s.name, source=s.source, intensity=s.intensity, has_pose=s.has_pose)
+        for s in sequence.scans
+    ]
+    return ScanSequence(scans, sequence.convention, sequence.source, sequence.format_name)
+
+
+def accepted_loops(report: Any) -> list[dict[str, Any]]:
+    loops = getattr(report, "loops", None) or []
+    return [
+        {"i": int(h.i), "j": int(h.j), "kind": "loop", "fitness": float(getattr(h, "fitness", 0.0))}
+        for h in loops
+        if getattr(h, "accepted", True)
+    ]
+
+
+def registration_job(workbench: Any, session_id: str, author: str, parameters: dict[str, Any]) -> Work:
+    """A job that runs the whole pipeline and commits its poses as a new revision."""
+    pipeline = _pipeline_module()
+    state = workbench.state(session_id)
+    config = pipeline_config(state.session.config.engine, parameters)
+
+    def work(progress: Progress, cancel: Cancel) -> dict[str, Any]:
+        sequence = working_copy(state.sequence(lambda d, t: progress("reading scans", d, t)))
+        runner = pipeline.Pipeline(sequence, config)
+        report = runner.run(progress, cancel)
+        summary = to_jsonable(report)
+        graph = {"loops": accepted_loops(report), "removed": []}
+        revision = workbench.commit(
+            session_id, runner.poses, author, "register", {"config": to_jsonable(config)}, graph=graph
+        )
+        return {"revision": revision, "report": summary}
+
+    return work

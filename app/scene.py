@@ -1,0 +1,113 @@
+"""What the 3D view draws, computed without any viewer: point budget, colours, graph lines.
+
+Scans are drawn in their own frame with the pose on the scene node, so the points are sent once
+and a pose change costs a few bytes. Local coordinates stay small, which is what makes float16
+safe; world coordinates of a map far from the origin would quantise to centimetres or worse.
+"""
+
+from __future__ import annotations
+
+import colorsys
+from collections.abc import Sequence
+
+import numpy as np
+from numpy.typing import NDArray
+
+from slam6d.geometry import Matrix
+from slam6d.nn import build_index
+from slam6d.octree import reduce_points
+
+DEFAULT_BUDGET = 1_500_000
+FLOAT16_SAFE_EXTENT = 32.0  # metres: float16 spacing stays under 1.6 cm up to here
+
+_RAMP = np.array(  # perceptually ordered blue -> cyan -> green -> yellow -> red
+    [[48, 18, 59], [40, 160, 230], [60, 220, 120], [250, 200, 40], [200, 30, 20]], dtype=np.float64
+)
+
+
+def display_indices(points: NDArray[np.float64], voxel_size: float, cap: int) -> NDArray[np.int64]:
+    """One real point per voxel, then an even thinning down to ``cap`` if still too many."""
+    keep = reduce_points(points, voxel_size) if voxel_size > 0 and len(points) > 1 else np.arange(len(points))
+    if len(keep) > cap:
+        keep = keep[np.linspace(0, len(keep) - 1, max(cap, 1)).astype(np.int64)]
+    return keep
+
+
+def budget_selection(
+    clouds: Sequence[NDArray[np.float64]], budget: int = DEFAULT_BUDGET, voxel_size: float = 0.05
+) -> list[NDArray[np.int64]]:
+    """Per-scan indices so the whole map stays within ``budget`` points.
+
+    Each scan gets an equal share; what a sparse scan leaves unused is not redistributed, which
+    keeps the choice independent of the other scans (a scan's display never changes when another
+    scan is added).
+    """
+    cap = max(1, budget // max(1, len(clouds)))
+    return [display_indices(c, voxel_size, cap) for c in clouds]
+
+
+def precision_for(points: NDArray[np.floating]) -> str:
+    extent = float(np.abs(points).max()) if len(points) else 0.0
+    return "float16" if extent <= FLOAT16_SAFE_EXTENT else "float32"
+
+
+def scan_color(index: int) -> tuple[int, int, int]:
+    """Distinct, stable colours: hues spaced by the golden ratio."""
+    r, g, b = colorsys.hsv_to_rgb((index * 0.61803398875) % 1.0, 0.65, 0.95)
+    return int(r * 255), int(g * 255), int(b * 255)
+
+
+def ramp(values: NDArray[np.float64], low: float, high: float) -> NDArray[np.uint8]:
+    """Map values to the colour ramp; NaN becomes grey (no data)."""
+    span = high - low if high > low else 1.0
+    t = np.clip((np.asarray(values, dtype=np.float64) - low) / span, 0.0, 1.0) * (len(_RAMP) - 1)
+    lower = np.floor(np.nan_to_num(t)).astype(np.int64).clip(0, len(_RAMP) - 2)
+    frac = (np.nan_to_num(t) - lower)[:, None]
+    colors = _RAMP[lower] * (1 - frac) + _RAMP[lower + 1] * frac
+    colors[~np.isfinite(values)] = 150.0
+    return colors.astype(np.uint8)
+
+
+def world_heights(local: NDArray[np.floating], pose: Matrix) -> NDArray[np.float64]:
+    return np.asarray(local, dtype=np.float64) @ pose[2, :3] + pose[2, 3]
+
+
+def height_range(clouds: Sequence[NDArray[np.floating]], poses: Sequence[Matrix]) -> tuple[float, float]:
+    """2nd-98th percentile of world heights, so a stray point does not wash out the ramp."""
+    samples = [world_heights(c[:: max(1, len(c) // 2000)], p) for c, p in zip(clouds, poses, strict=True) if len(c)]
+    if not samples:
+        return 0.0, 1.0
+    z = np.concatenate(samples)
+    return float(np.percentile(z, 2)), float(np.percentile(z, 98))
+
+
+def residuals(clouds: Sequence[NDArray[np.floating]], poses: Sequence[Matrix], neighbours: int = 8) -> list[NDArray]:
+    """Per point: distance to the nearest point of any *other* scan (NaN when none among the k nearest).
+
+    This is what "residual" means to a person looking at the map: where scans disagree.
+    """
+    world = [np.asarray(c, np.float64) @ p[:3, :3].T + p[:3, 3] for c, p in zip(clouds, poses, strict=True)]
+    labels = np.concatenate([np.full(len(w), k) for k, w in enumerate(world)])
+    stacked = np.concatenate(world)
+    if len(stacked) < 2:
+        return [np.full(len(w), np.nan) for w in world]
+    index = build_index(stacked)
+    k = min(neighbours, len(stacked))
+    dist, idx = index.knn(stacked, k)
+    dist, idx = dist.reshape(len(stacked), k), idx.reshape(len(stacked), k)
+    other = (idx >= 0) & (labels[np.clip(idx, 0, None)] != labels[:, None])
+    first = np.where(other.any(axis=1), other.argmax(axis=1), -1)
+    result = np.where(first >= 0, dist[np.arange(len(stacked)), np.clip(first, 0, None)], np.nan)
+    bounds = np.concatenate([[0], np.cumsum([len(w) for w in world])])
+    return [result[bounds[k] : bounds[k + 1]] for k in range(len(world))]
+
+
+def segments(pairs: Sequence[tuple[int, int]], poses: Sequence[Matrix]) -> NDArray[np.float32]:
+    """(N, 2, 3) line segments between scan positions, relative to the first scan's position.
+
+    The caller places the segment node at that position, keeping these coordinates small.
+    """
+    if not pairs:
+        return np.zeros((0, 2, 3), np.float32)
+    origin = poses[0][:3, 3]
+    return np.array([[poses[i][:3, 3] - origin, poses[j][:3, 3] - origin] for i, j in pairs], dtype=np.float32)

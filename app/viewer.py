@@ -1,0 +1,518 @@
+"""The 3D view of a session: one viser server per open session, shared by every browser on it.
+
+Everything shown lives in server-side state, so a second browser on the same session sees the
+same map, colours and revision. Scans are sent once (display-reduced to a point budget) in their
+own frame; moving a scan only changes its scene node's pose.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+import traceback
+from typing import Any
+
+import numpy as np
+import viser
+
+from app import scene
+from app.registration import pipeline_config, working_copy
+from app.workbench import Workbench
+from slam6d.errors import Slam6dError
+from slam6d.geometry import Matrix, rotation_to_quaternion
+
+COLOUR_MODES = ("scan", "height", "residual")
+_PAIR_DATA = (255, 120, 0)
+_PAIR_MODEL = (60, 140, 255)
+_MAX_CORRESPONDENCES = 300
+
+
+class SessionViewer:
+    def __init__(self, workbench: Workbench, session_id: str) -> None:
+        self.workbench = workbench
+        self.session_id = session_id
+        self.state = workbench.state(session_id)
+        self.server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False, label=self.state.session.name)
+        self.port = self.server.get_port()
+        self.server.scene.set_up_direction("+z")
+        self.server.gui.configure_theme(dark_mode=True, control_width="large")
+        self.lock = threading.RLock()
+        self.ready = threading.Event()
+        self.error: str | None = None
+        self.local: list[np.ndarray] = []  # display points per scan, scanner frame, float32
+        self.poses: list[Matrix] = []
+        self.nodes: list[Any] = []
+        self.residuals: list[np.ndarray] | None = None
+        self.highlight: dict[int, tuple[int, int, int]] = {}
+        self._height_range = (0.0, 1.0)
+        self.shown_revision = -1
+        self.pose_updates = 0
+        self.stepper: Stepper | None = None
+        self.client_names: dict[int, Any] = {}
+        self._build_gui()
+        self.server.on_client_connect(self._on_connect)
+        threading.Thread(target=self._load, name=f"viewer-load-{session_id}", daemon=True).start()
+
+    # -------------------------------------------------------------- GUI
+
+    def _build_gui(self) -> None:
+        gui = self.server.gui
+        self.status = gui.add_markdown("Loading scans…")
+        self.warnings = gui.add_markdown("")
+        self.progress = gui.add_progress_bar(0.0, animated=True)
+        with gui.add_folder("View"):
+            self.colour = gui.add_dropdown("Colour by", COLOUR_MODES, initial_value="scan")
+            self.point_size = gui.add_slider("Point size", 0.005, 0.2, 0.005, 0.03)
+            self.budget = gui.add_number("Point budget", scene.DEFAULT_BUDGET, min=10_000, max=20_000_000, step=10_000)
+            self.apply_budget = gui.add_button("Apply budget")
+            self.show_trajectory = gui.add_checkbox("Trajectory", True)
+            self.show_edges = gui.add_checkbox("Graph edges", True)
+        with gui.add_folder("Registration"):
+            self.run_button = gui.add_button("Run registration")
+            self.cancel_button = gui.add_button("Cancel job", disabled=True)
+            self.step_button = gui.add_button("Step ICP iteration")
+            self.next_scan_button = gui.add_button("Next scan")
+            self.play_button = gui.add_button("Play")
+            self.pause_button = gui.add_button("Pause", disabled=True)
+            self.step_status = gui.add_markdown("")
+            self.plot = gui.add_uplot(
+                (np.zeros(0), np.zeros(0), np.zeros(0)),
+                (
+                    {"label": "iteration"},
+                    {"label": "RMS (m)", "stroke": "#e8590c", "scale": "m"},
+                    {"label": "pairs", "stroke": "#1c7ed6", "scale": "n"},
+                ),
+                title="ICP per iteration",
+                scales={"x": {"time": False}, "m": {"auto": True}, "n": {"auto": True}},
+                axes=({}, {"scale": "m"}, {"scale": "n", "side": 1}),
+                aspect=1.6,
+            )
+        with gui.add_folder("History"):
+            self.revision_text = gui.add_markdown("")
+            self.undo_button = gui.add_button("Undo")
+            self.redo_button = gui.add_button("Redo")
+
+        self.colour.on_update(lambda _: self._run_safely(self.recolour))
+        self.point_size.on_update(lambda _: self._set_point_size())
+        self.apply_budget.on_click(lambda _: self._run_safely(self._rebuild_scans))
+        self.show_trajectory.on_update(lambda _: self._draw_graph())
+        self.show_edges.on_update(lambda _: self._draw_graph())
+        self.undo_button.on_click(
+            lambda e: self._run_safely(lambda: self.workbench.undo(self.session_id, self.author(e)))
+        )
+        self.redo_button.on_click(
+            lambda e: self._run_safely(lambda: self.workbench.redo(self.session_id, self.author(e)))
+        )
+        self.run_button.on_click(lambda e: self._run_safely(lambda: self._start_registration(self.author(e))))
+        self.cancel_button.on_click(lambda _: self._cancel_jobs())
+        self.step_button.on_click(lambda e: self._run_safely(lambda: self._stepper(self.author(e)).step()))
+        self.next_scan_button.on_click(lambda e: self._run_safely(lambda: self._stepper(self.author(e)).next_scan()))
+        self.play_button.on_click(lambda e: self._run_safely(lambda: self._stepper(self.author(e)).play()))
+        self.pause_button.on_click(lambda _: self.stepper and self.stepper.pause())
+
+    def _on_connect(self, client: viser.ClientHandle) -> None:
+        # Each browser has its own name field, so the journal records who pressed a button.
+        self.client_names[client.client_id] = client.gui.add_text("Your name", f"guest-{client.client_id}", order=-1)
+
+    def author(self, event: Any) -> str:
+        field = self.client_names.get(getattr(event, "client_id", -1))
+        return (field.value.strip() if field is not None else "") or "anonymous"
+
+    def _run_safely(self, action: Any) -> None:
+        """GUI callbacks: an engine error becomes a visible warning, not a dead button."""
+        try:
+            action()
+        except Slam6dError as exc:
+            self.warn(str(exc))
+        except Exception as exc:
+            traceback.print_exc()
+            self.warn(f"{type(exc).__name__}: {exc}")
+
+    def warn(self, message: str) -> None:
+        self.warnings.content = f"**⚠ {message}**" if message else ""
+
+    # -------------------------------------------------------------- scene
+
+    def _load(self) -> None:
+        try:
+            sequence = self.state.sequence(lambda d, t: self._progress("Reading scans", d, t))
+            self._rebuild_scans()
+            poses = sequence.poses()
+            lo = np.min([p[:3, 3] for p in poses], axis=0)
+            hi = np.max([p[:3, 3] for p in poses], axis=0)
+            centre = (lo + hi) / 2
+            size = float(max(np.linalg.norm(hi - lo), 20.0))
+            self.server.initial_camera.look_at = centre
+            self.server.initial_camera.position = centre + np.array([-0.4, -0.6, 0.7]) * size
+            self.progress.visible = False
+        except Exception as exc:
+            self.error = str(exc)
+            self.status.content = f"**Cannot load this session:** {exc}"
+            self.progress.visible = False
+            if not isinstance(exc, Slam6dError):
+                traceback.print_exc()
+        finally:
+            self.ready.set()
+
+    def _progress(self, stage: str, done: int, total: int) -> None:
+        self.progress.value = 100.0 * done / max(total, 1)
+        self.status.content = f"{stage}… {done}/{total}"
+
+    def _rebuild_scans(self) -> None:
+        """(Re)send every scan at the current budget: the only time point data goes over the wire."""
+        sequence = self.state.sequence()
+        voxel = float(self.state.session.config.engine.get("display_voxel_size", 0.05))
+        with self.lock:
+            selection = scene.budget_selection([s.points for s in sequence.scans], int(self.budget.value), voxel)
+            self.local = [s.points[idx].astype(np.float32) for s, idx in zip(sequence.scans, selection, strict=True)]
+            self.poses = [s.pose.copy() for s in sequence.scans]
+            self.residuals = None
+            for node in self.nodes:
+                node.remove()
+            self.nodes = []
+            for k, points in enumerate(self.local):
+                pose = self.poses[k]
+                self.nodes.append(
+                    self.server.scene.add_point_cloud(
+                        f"/scans/{sequence.scans[k].name or k}",
+                        points=points,
+                        colors=self._colours(k),
+                        point_size=float(self.point_size.value),
+                        precision=scene.precision_for(points),  # type: ignore[arg-type]
+                        position=pose[:3, 3],
+                        wxyz=rotation_to_quaternion(pose[:3, :3]),
+                    )
+                )
+            self.shown_revision = self.state.session.revision
+        self._draw_graph()
+        self._update_status()
+
+    def _colours(self, k: int) -> np.ndarray | tuple[int, int, int]:
+        if k in self.highlight:
+            return self.highlight[k]
+        mode = self.colour.value
+        if mode == "height":
+            low, high = self._height_range
+            return scene.ramp(scene.world_heights(self.local[k], self.poses[k]), low, high)
+        if mode == "residual" and self.residuals is not None:
+            return scene.ramp(self.residuals[k], 0.0, 0.3)
+        return scene.scan_color(k)
+
+    def recolour(self) -> None:
+        with self.lock:
+            if self.colour.value == "height":
+                self._height_range = scene.height_range(self.local, self.poses)
+            if self.colour.value == "residual" and self.residuals is None:
+                self.status.content = "Computing residuals…"
+                self.residuals = scene.residuals(self.local, self.poses)
+            for k, node in enumerate(self.nodes):
+                colours = self._colours(k)
+                node.colors = np.broadcast_to(np.array(colours, np.uint8), (len(self.local[k]), 3))
+        self._update_status()
+
+    def _set_point_size(self) -> None:
+        for node in self.nodes:
+            node.point_size = float(self.point_size.value)
+
+    def set_poses(self, poses: list[Matrix], indices: list[int] | None = None) -> None:
+        """Move scan nodes (pose-only update: no point data is sent)."""
+        with self.lock:
+            for k in range(len(poses)) if indices is None else indices:
+                if k >= len(self.nodes):
+                    continue
+                self.poses[k] = np.asarray(poses[k]).copy()
+                self.nodes[k].position = self.poses[k][:3, 3]
+                self.nodes[k].wxyz = rotation_to_quaternion(self.poses[k][:3, :3])
+            self.pose_updates += 1
+            self.residuals = None
+
+    def _draw_graph(self) -> None:
+        with self.lock:
+            if not self.poses:
+                return
+            origin = self.poses[0][:3, 3]
+            graph = self.state.session.graph()
+            from app.exports import graph_edges
+
+            edges = graph_edges(len(self.poses), graph)
+            sequential = [(i, j) for i, j, kind in edges if kind == "sequential"]
+            loops = [(i, j) for i, j, kind in edges if kind != "sequential"]
+            self.server.scene.add_line_segments(
+                "/graph/trajectory",
+                scene.segments(sequential, self.poses),
+                colors=(250, 250, 250),
+                line_width=3.0,
+                position=origin,
+                visible=bool(self.show_trajectory.value),
+            )
+            self.server.scene.add_line_segments(
+                "/graph/loops",
+                scene.segments(loops, self.poses) if loops else np.zeros((1, 2, 3), np.float32),
+                colors=(255, 60, 200),
+                line_width=2.0,
+                position=origin,
+                visible=bool(self.show_edges.value) and bool(loops),
+            )
+
+    def _update_status(self) -> None:
+        session = self.state.session
+        shown = sum(len(p) for p in self.local)
+        total = sum(len(s) for s in self.state.sequence().scans)
+        self.status.content = (
+            f"**{session.name}** · {len(self.local)} scans · {shown:,} of {total:,} points shown · "
+            f"revision {session.revision}"
+        )
+        self.revision_text.content = (
+            f"Revision {session.revision} (undo: {session.can_undo()}, redo: {session.can_redo()})"
+        )
+
+    def on_revision(self) -> None:
+        """The journal's current revision changed (edit, undo, job): show it."""
+        if not self.ready.is_set() or self.error:
+            return
+        poses = self.state.session.poses()
+        self.set_poses(poses)
+        with self.lock:
+            self.shown_revision = self.state.session.revision
+            if self.colour.value != "scan":
+                self.recolour()
+        self._draw_graph()
+        self._update_status()
+
+    # -------------------------------------------------------------- jobs
+
+    def _start_registration(self, author: str) -> None:
+        from app.registration import registration_job
+
+        work = registration_job(self.workbench, self.session_id, author, {})
+        self.workbench.jobs.submit(self.session_id, "register", work, author)
+
+    def _cancel_jobs(self) -> None:
+        for job in self.workbench.jobs.for_session(self.session_id):
+            self.workbench.jobs.cancel(job.id)
+
+    def on_job(self, job: Any) -> None:
+        self.progress.visible = job.active
+        self.cancel_button.disabled = not job.active
+        self.run_button.disabled = job.active
+        if job.total:
+            self.progress.value = 100.0 * job.done / job.total
+        if job.active:
+            self.status.content = f"{job.kind}: {job.stage} {job.done}/{job.total}"
+        elif job.status == "failed":
+            self.warn(f"{job.kind} failed: {job.message}")
+            self._update_status()
+        else:
+            self.warn("" if job.status == "done" else f"{job.kind} {job.status}")
+            self._update_status()
+
+    def _stepper(self, author: str) -> Stepper:
+        if self.stepper is None or self.stepper.finished:
+            self.stepper = Stepper(self, author)
+        return self.stepper
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "ready": self.ready.is_set(),
+            "error": self.error,
+            "scans": len(self.nodes),
+            "points_shown": int(sum(len(p) for p in self.local)),
+            "colour": self.colour.value,
+            "revision_shown": self.shown_revision,
+            "pose_updates": self.pose_updates,
+            "stepping": None if self.stepper is None else self.stepper.as_dict(),
+            "clients": len(self.server.get_clients()),
+        }
+
+    def stop(self) -> None:
+        if self.stepper is not None:
+            self.stepper.pause()
+        self.server.stop()
+
+
+class Stepper:
+    """Registration one ICP iteration (or one scan) at a time, drawn as it goes.
+
+    Poses shown while stepping are the pipeline's working estimate; the journal gets a new
+    revision only when the run finishes.
+    """
+
+    def __init__(self, viewer: SessionViewer, author: str) -> None:
+        from slam6d.pipeline import Pipeline
+
+        self.viewer = viewer
+        self.author = author
+        config = pipeline_config(viewer.state.session.config.engine)
+        self.pipeline = Pipeline(working_copy(viewer.state.sequence()), config)
+        self.history: list[tuple[int, float, int]] = []
+        self.current: int | None = None
+        self.model: list[int] = []
+        self.events = 0
+        self.finished = False
+        self._playing = threading.Event()
+        self._lock = threading.Lock()
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "current": self.current,
+            "model": self.model,
+            "events": self.events,
+            "iterations": len(self.history),
+            "rms": [h[1] for h in self.history],
+            "playing": self._playing.is_set(),
+            "finished": self.finished,
+        }
+
+    def step(self) -> None:
+        with self._lock:
+            if not self.finished:
+                self._show(self.pipeline.step())
+
+    def next_scan(self) -> None:
+        with self._lock:
+            if not self.finished:
+                for event in self.pipeline.step_scan():
+                    self._show(event)
+
+    def play(self, rate: float = 30.0) -> None:
+        if self._playing.is_set():
+            return
+        self._playing.set()
+        self.viewer.play_button.disabled = True
+        self.viewer.pause_button.disabled = False
+
+        def loop() -> None:
+            try:
+                while self._playing.is_set() and not self.finished:
+                    start = time.monotonic()
+                    self.step()
+                    time.sleep(max(0.0, 1.0 / rate - (time.monotonic() - start)))
+            except Exception as exc:
+                self.viewer.warn(f"stepping stopped: {exc}")
+            finally:
+                self.pause()
+
+        threading.Thread(target=loop, name="stepper", daemon=True).start()
+
+    def pause(self) -> None:
+        self._playing.clear()
+        self.viewer.play_button.disabled = False
+        self.viewer.pause_button.disabled = True
+
+    def _show(self, event: Any) -> None:
+        viewer = self.viewer
+        self.events += 1
+        kind = type(event).__name__
+        if kind == "ScanStarted":
+            self._set_pair(int(event.index), [int(i) for i in event.model_indices])
+            self.history = []
+            viewer.set_poses(self._pose_list(event.index, event.initial), [event.index])
+        elif kind == "IcpIterated":
+            it = event.iteration
+            self.history.append((int(it.index), float(it.rms), int(it.pairs)))
+            viewer.set_poses(self._pose_list(event.index, it.transform), [event.index])
+            self._draw_correspondences(int(event.index), float(it.max_distance))
+            h = np.array(self.history, dtype=np.float64)
+            viewer.plot.data = (h[:, 0], h[:, 1], h[:, 2])
+            viewer.step_status.content = (
+                f"scan {event.index} · iteration {it.index} · RMS {it.rms:.4f} m · {it.pairs} pairs"
+            )
+        elif kind == "ScanRegistered":
+            viewer.set_poses(self._pose_list(event.index, event.pose), [event.index])
+            viewer.step_status.content = f"scan {event.index} registered (RMS {event.result.rms:.4f} m)"
+        elif kind == "Finished":
+            self.finished = True
+            self._set_pair(None, [])
+            viewer.server.scene.add_line_segments(
+                "/correspondences", np.zeros((1, 2, 3), np.float32), colors=(0, 0, 0), visible=False
+            )
+            graph = {"loops": [], "removed": []}
+            from app.registration import accepted_loops
+
+            graph["loops"] = accepted_loops(event.report)
+            viewer.workbench.commit(
+                viewer.session_id, self.pipeline.poses, self.author, "register", {"stepped": True}, graph=graph
+            )
+            viewer.step_status.content = "registration finished; stored as a new revision"
+        else:
+            viewer.step_status.content = kind
+
+    def _pose_list(self, index: int, pose: Any) -> list[Matrix]:
+        poses = [np.eye(4)] * (index + 1)
+        poses[index] = np.asarray(pose, dtype=np.float64)
+        return poses
+
+    def _set_pair(self, current: int | None, model: list[int]) -> None:
+        viewer = self.viewer
+        changed = {*viewer.highlight, *([current] if current is not None else []), *model}
+        self.current, self.model = current, model
+        viewer.highlight = {} if current is None else {**dict.fromkeys(model, _PAIR_MODEL), current: _PAIR_DATA}
+        for k in changed:
+            if k is not None and k < len(viewer.nodes):
+                viewer.nodes[k].colors = np.broadcast_to(
+                    np.array(viewer._colours(k), np.uint8), (len(viewer.local[k]), 3)
+                )
+
+    def _draw_correspondences(self, index: int, max_distance: float) -> None:
+        """Closest-point pairs between the current scan and its model, from the displayed points (capped)."""
+        from slam6d.icp import correspondences
+
+        viewer = self.viewer
+        if not self.model or max_distance <= 0:
+            return
+        world = [
+            viewer.local[m].astype(np.float64) @ viewer.poses[m][:3, :3].T + viewer.poses[m][:3, 3] for m in self.model
+        ]
+        model = np.concatenate(world)
+        data = viewer.local[index].astype(np.float64)
+        pose = viewer.poses[index]
+        data_idx, model_idx = correspondences(model, data, pose, max_distance, limit=_MAX_CORRESPONDENCES)
+        if len(data_idx) == 0:
+            return
+        origin = viewer.poses[0][:3, 3]
+        start = data[data_idx] @ pose[:3, :3].T + pose[:3, 3] - origin
+        end = model[model_idx] - origin
+        viewer.server.scene.add_line_segments(
+            "/correspondences",
+            np.stack([start, end], axis=1).astype(np.float32),
+            colors=(255, 255, 0),
+            line_width=1.0,
+            position=origin,
+        )
+
+
+class ViewerRegistry:
+    """Starts a session's viewer when someone first opens it; keeps it for everyone after."""
+
+    def __init__(self, workbench: Workbench) -> None:
+        self.workbench = workbench
+        self._viewers: dict[str, SessionViewer] = {}
+        self._lock = threading.Lock()
+        workbench.on_revision(self._on_revision)
+        workbench.jobs.on_change(self._on_job)
+
+    def get(self, session_id: str) -> SessionViewer:
+        with self._lock:
+            viewer = self._viewers.get(session_id)
+            if viewer is None:
+                viewer = self._viewers[session_id] = SessionViewer(self.workbench, session_id)
+            return viewer
+
+    def existing(self, session_id: str) -> SessionViewer | None:
+        return self._viewers.get(session_id)
+
+    def _on_revision(self, session_id: str) -> None:
+        viewer = self._viewers.get(session_id)
+        if viewer is not None:
+            viewer.on_revision()
+
+    def _on_job(self, job: Any) -> None:
+        viewer = self._viewers.get(job.session_id)
+        if viewer is not None:
+            viewer.on_job(job)
+
+    def stop_all(self) -> None:
+        with self._lock:
+            for viewer in self._viewers.values():
+                viewer.stop()
+            self._viewers.clear()
