@@ -241,7 +241,8 @@ class SessionViewer:
                 "/graph/trajectory",
                 scene.segments(sequential, self.poses),
                 colors=(250, 250, 250),
-                line_width=3.0,
+                thickness=3.0,
+                thickness_units="screen",
                 position=origin,
                 visible=bool(self.show_trajectory.value),
             )
@@ -249,7 +250,8 @@ class SessionViewer:
                 "/graph/loops",
                 scene.segments(loops, self.poses) if loops else np.zeros((1, 2, 3), np.float32),
                 colors=(255, 60, 200),
-                line_width=2.0,
+                thickness=2.0,
+                thickness_units="screen",
                 position=origin,
                 visible=bool(self.show_edges.value) and bool(loops),
             )
@@ -476,7 +478,8 @@ class Stepper:
             "/correspondences",
             np.stack([start, end], axis=1).astype(np.float32),
             colors=(255, 255, 0),
-            line_width=1.0,
+            thickness=1.0,
+            thickness_units="screen",
             position=origin,
         )
 

@@ -1,0 +1,80 @@
+"""The workbench in a real browser: the map is drawn, edits reach every browser on a session."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from tests.browser.conftest import map_pixels, viewer_frame
+
+pytestmark = pytest.mark.browser
+
+
+def open_session(page, server, session_id: str, timeout: float = 60_000) -> None:  # type: ignore[no-untyped-def]
+    page.goto(f"{server.url}/sessions/{session_id}")
+    viewer_frame(page).get_by_text("points shown").wait_for(timeout=timeout)
+
+
+def wait_for_map(page, minimum: float = 0.01, timeout: float = 20.0) -> float:  # type: ignore[no-untyped-def]
+    deadline = time.monotonic() + timeout
+    fraction = 0.0
+    while time.monotonic() < deadline:
+        fraction = map_pixels(page)
+        if fraction >= minimum:
+            return fraction
+        time.sleep(0.3)
+    return fraction
+
+
+def test_bundled_session_canvas_shows_the_map(demo_sessions, live_server, new_browser, artifacts_dir):
+    server = live_server(demo_sessions)
+    page = new_browser()
+    open_session(page, server, "demo", timeout=180_000)
+    fraction = wait_for_map(page)
+    page.screenshot(path=str(artifacts_dir / "workbench_demo.png"))
+    assert fraction >= 0.01, f"only {fraction:.2%} of the canvas differs from the background"
+    view = server.app.state.viewers.get("demo").as_dict()
+    assert view["ready"] and view["error"] is None and view["points_shown"] > 0
+
+
+def test_corridor_map_is_drawn_through_the_single_port(corridor_sessions, live_server, new_browser, artifacts_dir):
+    server = live_server(corridor_sessions)
+    page = new_browser()
+    sockets = []
+    page.on("websocket", lambda ws: sockets.append(ws.url))
+    open_session(page, server, "corridor")
+    assert wait_for_map(page) >= 0.01
+    page.screenshot(path=str(artifacts_dir / "workbench_corridor.png"))
+    assert sockets == [f"ws://127.0.0.1:{server.port}/viser/corridor"]
+
+
+def test_second_browser_sees_the_first_ones_edit(corridor_sessions, live_server, new_browser, artifacts_dir):
+    server = live_server(corridor_sessions)
+    workbench = server.workbench
+    poses = workbench.current_poses("corridor")
+    poses[3] = poses[3].copy()
+    poses[3][2, 3] += 2.0  # lift one scan by 2 m: an edit someone made earlier
+    workbench.commit("corridor", poses, "ana", "manual_move", {"scan": 3})
+
+    first, second = new_browser(), new_browser()
+    open_session(first, server, "corridor")
+    open_session(second, server, "corridor")
+    viewer_frame(second).get_by_text("revision 1", exact=False).first.wait_for(timeout=10_000)
+
+    first.locator("#author").fill("bob")
+    first.locator("#author").dispatch_event("change")
+    first.locator("#undo").click()
+    # the second browser's 3D view reports the new revision without reloading
+    viewer_frame(second).get_by_text("revision 0", exact=False).first.wait_for(timeout=10_000)
+    second.screenshot(path=str(artifacts_dir / "workbench_second_browser.png"))
+    viewer = server.app.state.viewers.get("corridor")
+    assert viewer.poses[3][2, 3] == pytest.approx(workbench.current_poses("corridor")[3][2, 3])
+    assert np.allclose(viewer.poses[3], workbench.current_poses("corridor")[3])
+    undo = workbench.state("corridor").session.journal()[-1]
+    assert (undo.kind, undo.author) == ("undo", "bob")
+    # Ctrl+Shift+Z in the second browser redoes it, for both
+    second.locator("body").press("Control+Shift+Z")
+    viewer_frame(first).get_by_text("revision 1", exact=False).first.wait_for(timeout=10_000)
+    assert workbench.state("corridor").session.revision == 1
