@@ -575,9 +575,8 @@ class FrameSink:
                 raise Slam6dError(f"{self.out}: H.264 needs an even width and height, got {width}x{height}")
             import imageio_ffmpeg
 
-            handle, tmp = tempfile.mkstemp(suffix=self.out.suffix, prefix=f".{self.out.stem}-", dir=self.out.parent)
-            os.close(handle)
-            self._tmp = Path(tmp)
+            # ffmpeg creates the file itself, so it gets the user's usual permissions.
+            self._tmp = self.out.parent / f".{self.out.stem}.{os.getpid()}.{id(self):x}.partial{self.out.suffix}"
             self._writer = imageio_ffmpeg.write_frames(
                 str(self._tmp),
                 (width, height),
