@@ -81,9 +81,12 @@ def render(
 
     try:
         width, height_px = (int(v) for v in size.lower().split("x"))
+    except ValueError:
+        raise typer.BadParameter(f"--size must look like 1280x720, got {size!r}") from None
+    try:
         options = RenderOptions(color_mode=color, shading=shading, point_size=point_size)
     except ValueError as exc:
-        raise typer.BadParameter(str(exc) if "x" not in size.lower() or "must" in str(exc) else f"bad --size {size}")
+        raise typer.BadParameter(str(exc)) from None
     with progress_bar("reading scans") as update:
         scene, session_path = load_render_input(source, fmt, poses, max_points, update)
     camera_path = load_camera_path(path) if path else session_path
@@ -93,11 +96,11 @@ def render(
         save_camera_path(save_path, camera_path)
     err.print(f"{len(scene):,} of {scene.total_points:,} points, {len(scene.scan_poses)} scans")
     with progress_bar("rendering") as update:
-        result = render_fly_through(
-            scene, out, width, height_px, fps, frames, camera_path, options, progress=update
-        )
-    typer.echo(f"{result.out}: {result.frames} frames {width}x{height_px} at {fps:g} fps "
-               f"({result.frames_per_second:.1f} frames/s rendered)")
+        result = render_fly_through(scene, out, width, height_px, fps, frames, camera_path, options, progress=update)
+    typer.echo(
+        f"{result.out}: {result.frames} frames {width}x{height_px} at {fps:g} fps "
+        f"({result.frames_per_second:.1f} frames/s rendered)"
+    )
 
 
 @app.command()
