@@ -186,3 +186,20 @@ def test_simulate_command_writes_a_session(tmp_path: Path) -> None:
     assert isinstance(again.exception, Slam6dError)
     bad = CliRunner().invoke(app, ["simulate", str(tmp_path / "x"), "--scans", "1"])
     assert bad.exit_code == 2 and "at least 2 scans" in bad.output
+
+
+def test_bundled_demo_session_is_what_its_readme_command_writes(tmp_path: Path) -> None:
+    """sessions/demo/README.md names the command; a simulator change must come with a regenerated demo."""
+    demo = Path(__file__).resolve().parent.parent / "sessions" / "demo" / "scans"
+    config = SimulationConfig(seed=42, scans=16, points_per_scan=18_000)
+    assert "--seed 42 --scans 16 --points-per-scan 18000" in (demo.parent / "README.md").read_text()
+    simulate_session(tmp_path, config)
+    bundled, fresh = read_sequence(demo, "uos"), read_sequence(tmp_path, "uos")
+    assert len(bundled) == len(fresh) == 16
+    for old, new in zip(bundled, fresh, strict=True):
+        # Compared as numbers, not bytes: another CPU may round a last float32 digit differently.
+        assert len(old) == len(new)
+        np.testing.assert_allclose(old.points, new.points, atol=2e-4)
+        np.testing.assert_allclose(old.pose, new.pose, atol=1e-6)
+    for name in ("ground_truth_kitti.txt", "odometry_kitti.txt"):
+        np.testing.assert_allclose(read_kitti_poses(demo / name), read_kitti_poses(tmp_path / name), atol=1e-6)
