@@ -43,7 +43,9 @@ def _simple(suffix: str, write: Callable[..., None], **kwargs: object) -> Writer
 
 
 def _write_uos(directory: Path, points: np.ndarray, intensity: np.ndarray | None) -> Path:
-    return write_uos_scan(directory, 0, UOS.points_to_native(points), None)
+    with np.errstate(invalid="ignore"):  # inf * 0 in the axis swap of the NaN test's points
+        native = UOS.points_to_native(points)
+    return write_uos_scan(directory, 0, native, None)
 
 
 # name -> (writer, coordinate tolerance in metres, carries intensity)
@@ -86,7 +88,7 @@ def test_las_intensity_kept_as_16_bit(tmp_path: Path) -> None:
 # ---------------------------------------------------------------- NaN and empty
 
 
-NAN_KINDS = sorted(k for k in WRITERS if k not in ("las", "laz", "e57", "uos"))  # see dedicated tests below
+NAN_KINDS = sorted(k for k in WRITERS if k not in ("las", "laz", "e57"))  # see dedicated tests below
 
 
 @pytest.mark.parametrize("kind", NAN_KINDS)

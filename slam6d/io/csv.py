@@ -12,6 +12,7 @@ and supplies their poses; the VTK format uses the same rule.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -132,7 +133,7 @@ def write_csv_cloud(path: Path | str, points: np.ndarray, intensity: np.ndarray 
     np.savetxt(Path(path), np.hstack(columns), fmt="%.9g", delimiter=",", header=header, comments="")
 
 
-def discover_listed(suffix: str):  # type: ignore[no-untyped-def]
+def discover_listed(suffix: str) -> Callable[[Path], list[Path]]:
     """Discovery for list-aware formats: the list's order if one fits, else the clouds sorted by name."""
 
     def discover(directory: Path) -> list[Path]:
@@ -148,7 +149,9 @@ def discover_listed(suffix: str):  # type: ignore[no-untyped-def]
     return discover
 
 
-def listed_poses(suffix: str):  # type: ignore[no-untyped-def]
+def listed_poses(suffix: str) -> Callable[[Path, list[Path]], list[Matrix] | None]:
+    """Poses from the list file that :func:`discover_listed` used, when it has ``gT`` columns for every file."""
+
     def sequence_poses(directory: Path, files: list[Path]) -> list[Matrix] | None:
         entries = find_list_for(directory, suffix)
         if entries is None or any(pose is None for _, pose in entries):
@@ -156,7 +159,7 @@ def listed_poses(suffix: str):  # type: ignore[no-untyped-def]
         by_file = {p.resolve(): pose for p, pose in entries}
         if not all(f.resolve() in by_file for f in files):
             return None
-        return [by_file[f.resolve()] for f in files]  # type: ignore[misc]
+        return [by_file[f.resolve()] for f in files]
 
     return sequence_poses
 
