@@ -43,11 +43,16 @@ def _build(cls: type, values: dict[str, Any], what: str) -> Any:
 
 
 def pipeline_config(engine: dict[str, Any], overrides: dict[str, Any] | None = None) -> Any:
-    """PipelineConfig from session parameters; ``icp.*`` keys may be given flat as ``icp_<name>`` too."""
+    """PipelineConfig from session parameters; ``icp.*`` keys may be given flat as ``icp_<name>`` too.
+
+    ``display_*`` keys belong to the 3D view (e.g. ``display_voxel_size``) and are skipped here.
+    """
     pipeline = _pipeline_module()
     values: dict[str, Any] = {}
     for source in (engine, overrides or {}):
         for key, value in source.items():
+            if key.startswith("display_"):  # settings of the 3D view, not of the engine
+                continue
             if key.startswith("icp_"):
                 values.setdefault("icp", {})[key[4:]] = value
             elif key == "icp" and isinstance(value, dict):
