@@ -54,10 +54,11 @@ def read_e57(path: Path) -> CloudData:
         reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise FormatError(path, f"cannot read as E57: {reason}") from None
     reference = poses[0]
+    to_first = invert(reference if reference is not None else np.eye(4))
     parts, intensities = [], []
-    for (points, intensity), pose in zip(clouds, poses, strict=True):
-        if pose is not None and reference is not None:
-            points = transform_points(invert(reference) @ pose, points)
+    for index, ((points, intensity), pose) in enumerate(zip(clouds, poses, strict=True)):
+        if index > 0:  # a scan without a pose sits at the file's origin
+            points = transform_points(to_first @ (pose if pose is not None else np.eye(4)), points)
         parts.append(points)
         intensities.append(intensity)
     has_intensity = all(i is not None for i in intensities)
