@@ -322,7 +322,7 @@ def _building(mesh: MeshBuilder, terrain: Terrain, xy: NDArray[np.float64], size
     mesh.box(np.r_[xy, (ground + top) / 2], np.r_[size, top - ground], yaw)
     for level in np.arange(ground + 3.5, top - 0.5, 3.0):  # a ledge per floor
         mesh.box(np.r_[xy, level], np.r_[size + 0.3, 0.2], yaw)
-    local_z = rot_z(yaw)
+    rotation = rot_z(yaw)
     for axis in (0, 1):
         other = 1 - axis
         count = int(size[axis] // 3.5)
@@ -333,11 +333,11 @@ def _building(mesh: MeshBuilder, terrain: Terrain, xy: NDArray[np.float64], size
                 local[other] = side * (size[other] / 2 + 0.06)
                 dims = np.full(3, 0.0)
                 dims[axis], dims[other], dims[2] = 0.4, 0.12, top - ground
-                mesh.box(np.r_[xy, 0.0] + local_z @ local + np.r_[0, 0, (ground + top) / 2], dims, yaw)
+                mesh.box(np.r_[xy, 0.0] + rotation @ local + np.r_[0, 0, (ground + top) / 2], dims, yaw)
     if rng.random() < 0.5:  # an annex on one side
         side = rng.choice([-1.0, 1.0])
         annex = np.r_[size[0] * 0.4, size[1] * 0.5]
-        offset = local_z[:2, :2] @ np.r_[0.0, side * (size[1] / 2 + annex[1] / 2 - 0.1)]
+        offset = rotation[:2, :2] @ np.r_[0.0, side * (size[1] / 2 + annex[1] / 2 - 0.1)]
         annex_top = float(terrain.height(xy[0], xy[1])) + 2.8
         mesh.box(np.r_[xy + offset, (ground + annex_top) / 2], np.r_[annex, annex_top - ground], yaw)
 
