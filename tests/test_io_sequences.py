@@ -34,6 +34,7 @@ def test_kitti_poses_in_parent_found_from_either_folder(tmp_path: Path) -> None:
     write_kitti_poses(tmp_path / "poses_subset.txt", POSES)
     write_kitti_poses(tmp_path / "poses_all.txt", POSES * 2)  # wrong line count: not a candidate
     (tmp_path / "times.txt").write_text("1\n2\n3\n4\n")  # right count, but not a poses file
+    (tmp_path / "imu.csv").write_text("0.1,0.2,9.8\n")  # would read as a csv cloud: the bins must win
     for folder in (tmp_path, bins):
         seq = read_sequence(folder)
         assert seq.format_name == "kitti"

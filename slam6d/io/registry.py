@@ -76,10 +76,12 @@ def detect_format(path: Path) -> ScanFormat:
     _load_builtin_formats()
     path = Path(path)
     if path.is_dir():
-        for fmt in _FORMATS.values():
+        # Fixed priority, not import order: a folder of KITTI bins with a stray .csv must stay KITTI.
+        ranked = sorted(_FORMATS.values(), key=lambda f: _priority(f.name))
+        for fmt in ranked:
             if fmt.discover is not None and fmt.discover(path):
                 return fmt
-        for fmt in _FORMATS.values():
+        for fmt in ranked:
             if any(p.suffix.lower() in fmt.suffixes for p in path.iterdir()):
                 return fmt
         raise FormatError(path, "no scan files of a known format in this directory; pass --format")
@@ -208,6 +210,12 @@ def read_sequence(
 
 
 _LOADED = False
+# Also the order in which a folder's format is guessed: formats with a strict naming scheme first.
+_BUILTIN_MODULES = ("uos", "kitti", "ply", "pcd", "xyz", "las", "e57", "vtk", "csv", "conf")
+
+
+def _priority(name: str) -> int:
+    return _BUILTIN_MODULES.index(name) if name in _BUILTIN_MODULES else len(_BUILTIN_MODULES)
 
 
 def _load_builtin_formats() -> None:
@@ -218,7 +226,7 @@ def _load_builtin_formats() -> None:
     _LOADED = True
     import importlib
 
-    for module in ("uos", "kitti", "ply", "pcd", "xyz", "las", "e57", "vtk", "csv", "conf"):
+    for module in _BUILTIN_MODULES:
         try:
             importlib.import_module(f"slam6d.io.{module}")
         except ModuleNotFoundError as exc:  # a format module not written yet, or its library missing
