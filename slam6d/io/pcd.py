@@ -98,58 +98,11 @@ def parse_pcd_header(path: Path, raw: bytes) -> PcdHeader:
     return PcdHeader(fields, dtypes, counts, points, viewpoint, values["DATA"][0], offset, line_no)
 
 
-def _lzf_decompress_impl():  # type: ignore[no-untyped-def]
-    """Build the numba LZF decoder lazily: numba's import and compile cost only hit compressed files."""
-    from numba import njit
-
-    @njit(cache=True)
-    def decompress(src: np.ndarray, dst: np.ndarray) -> int:  # returns bytes written, or -1 if corrupt
-        ip = 0
-        op = 0
-        n_in = src.shape[0]
-        n_out = dst.shape[0]
-        while ip < n_in:
-            ctrl = int(src[ip])
-            ip += 1
-            if ctrl < 32:
-                run = ctrl + 1
-                if op + run > n_out or ip + run > n_in:
-                    return -1
-                for k in range(run):
-                    dst[op + k] = src[ip + k]
-                op += run
-                ip += run
-            else:
-                length = ctrl >> 5
-                if ip >= n_in:
-                    return -1
-                if length == 7:
-                    length += int(src[ip])
-                    ip += 1
-                    if ip >= n_in:
-                        return -1
-                ref = op - ((ctrl & 0x1F) << 8) - 1 - int(src[ip])
-                ip += 1
-                length += 2
-                if ref < 0 or op + length > n_out:
-                    return -1
-                for k in range(length):
-                    dst[op + k] = dst[ref + k]
-                op += length
-        return op
-
-    return decompress
-
-
-_LZF = None
-
-
 def lzf_decompress(path: Path, compressed: bytes, size: int) -> bytes:
-    global _LZF
-    if _LZF is None:
-        _LZF = _lzf_decompress_impl()
+    from slam6d.io.lzf import decompress  # numba import and compile only when a compressed file shows up
+
     out = np.empty(size, dtype=np.uint8)
-    written = _LZF(np.frombuffer(compressed, dtype=np.uint8), out)
+    written = decompress(np.frombuffer(compressed, dtype=np.uint8), out)
     if written != size:
         raise FormatError(path, f"corrupt binary_compressed body (LZF data decodes to {written} of {size} bytes)")
     return out.tobytes()
