@@ -412,7 +412,7 @@ class Stepper:
         elif kind == "IcpIterated":
             it = event.iteration
             self.history.append((int(it.index), float(it.rms), int(it.pairs)))
-            viewer.set_poses(self._pose_list(event.index, it.transform), [event.index])
+            viewer.set_poses(self._pose_list(event.index, event.pose), [event.index])
             self._draw_correspondences(int(event.index), float(it.max_distance))
             h = np.array(self.history, dtype=np.float64)
             viewer.plot.data = (h[:, 0], h[:, 1], h[:, 2])
@@ -436,6 +436,16 @@ class Stepper:
                 viewer.session_id, self.pipeline.poses, self.author, "register", {"stepped": True}, graph=graph
             )
             viewer.step_status.content = "registration finished; stored as a new revision"
+        elif kind == "LoopsDetected":
+            accepted = sum(1 for h in event.hypotheses if getattr(h, "accepted", False))
+            viewer.step_status.content = f"{len(event.hypotheses)} loop hypotheses, {accepted} accepted"
+        elif kind in ("LoopClosed", "RelaxationProgressed"):
+            viewer.set_poses([np.asarray(p) for p in self.pipeline.poses])
+            viewer.step_status.content = (
+                f"loop {event.loop.i}-{event.loop.j} closed; largest move {max(event.displacement, default=0):.2f} m"
+                if kind == "LoopClosed"
+                else f"relaxation iteration {event.iteration}: residual {event.residual:.4f} m"
+            )
         else:
             viewer.step_status.content = kind
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import time
 
 import numpy as np
@@ -78,3 +79,49 @@ def test_second_browser_sees_the_first_ones_edit(corridor_sessions, live_server,
     second.locator("body").press("Control+Shift+Z")
     viewer_frame(first).get_by_text("revision 1", exact=False).first.wait_for(timeout=10_000)
     assert workbench.state("corridor").session.revision == 1
+
+
+def test_step_one_icp_iteration(corridor_sessions, live_server, new_browser, artifacts_dir):
+    server = live_server(corridor_sessions)
+    page = new_browser()
+    open_session(page, server, "corridor")
+    frame = viewer_frame(page)
+    viewer = server.app.state.viewers.get("corridor")
+    before = viewer.pose_updates
+    for _ in range(5):  # the first step starts a scan (and may search an initial guess); then ICP iterates
+        events = 0 if viewer.stepper is None else viewer.stepper.events
+        frame.get_by_role("button", name="Step ICP iteration").click()
+        deadline = time.monotonic() + 30
+        while viewer.stepper is None or viewer.stepper.events == events:
+            assert time.monotonic() < deadline, "no step happened"
+            time.sleep(0.1)
+        if viewer.stepper.history:
+            break
+    frame.get_by_text(re.compile(r"scan \d+ · iteration \d+ · RMS [0-9.]+ m · \d+ pairs")).wait_for(timeout=10_000)
+    page.screenshot(path=str(artifacts_dir / "workbench_icp_step.png"))
+    state = viewer.stepper.as_dict()
+    assert state["iterations"] == 1 and state["current"] is not None and state["model"]
+    assert viewer.pose_updates > before
+    assert server.workbench.state("corridor").session.revision == 0  # nothing is stored mid-run
+
+
+def test_run_registration_and_see_progress_finish(corridor_sessions, live_server, new_browser, artifacts_dir):
+    server = live_server(corridor_sessions)
+    page = new_browser()
+    open_session(page, server, "corridor")
+    frame = viewer_frame(page)
+    page.locator("#author").fill("carla")
+    page.locator("#author").dispatch_event("change")
+    name_row = frame.locator("label", has_text="Your name").locator("xpath=ancestor::div[2]")
+    name_row.locator("input").fill("carla")
+    frame.get_by_role("button", name="Run registration").click()
+    deadline = time.monotonic() + 5
+    while not server.workbench.jobs.for_session("corridor"):
+        assert time.monotonic() < deadline, "the button started no job"
+        time.sleep(0.05)
+    job = server.workbench.jobs.wait(server.workbench.jobs.for_session("corridor")[0].id, timeout=240)
+    assert job.status == "done", job.message
+    frame.get_by_text("revision 1", exact=False).first.wait_for(timeout=10_000)
+    page.screenshot(path=str(artifacts_dir / "workbench_registered.png"))
+    entry = server.workbench.state("corridor").session.journal()[-1]
+    assert (entry.kind, entry.author) == ("register", "carla")
