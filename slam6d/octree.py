@@ -26,10 +26,9 @@ IntArray = NDArray[np.int64]
 BITS_PER_AXIS = 21
 CELLS_PER_AXIS = 1 << BITS_PER_AXIS
 _EMPTY = np.int64(-1)
-_HASH_MULTIPLIER = np.uint64(0x9E3779B97F4A7C15)  # Fibonacci hashing spreads packed cell keys evenly
 
 
-def _as_points(points: FloatArray, what: str = "points") -> FloatArray:
+def as_points(points: FloatArray, what: str = "points") -> FloatArray:
     array = np.ascontiguousarray(points, dtype=np.float64)
     if array.ndim != 2 or array.shape[1] != 3:
         raise ValueError(f"{what} must be an (N, 3) array, got shape {array.shape}")
@@ -69,7 +68,12 @@ def unpack_keys(keys: IntArray) -> IntArray:
 
 @numba.njit(cache=True, inline="always")
 def _slot(key: np.int64, mask: np.int64) -> np.int64:
-    return np.int64((np.uint64(key) * _HASH_MULTIPLIER) >> np.uint64(32)) & mask
+    # splitmix64 finaliser: cells of a coarse grid differ in a few low bits per axis, which a plain
+    # multiplicative hash leaves clustered; full avalanche keeps the probe chains short
+    z = np.uint64(key)
+    z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+    z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    return np.int64(z ^ (z >> np.uint64(31))) & mask
 
 
 def _table_size(count: int) -> int:
@@ -90,7 +94,7 @@ def _build_table(keys: IntArray, size: np.int64) -> IntArray:
 
 
 @numba.njit(cache=True, inline="always")
-def _contains(table: IntArray, key: np.int64) -> bool:
+def contains_key(table: IntArray, key: np.int64) -> bool:
     mask = np.int64(len(table) - 1)
     slot = _slot(key, mask)
     while True:
@@ -107,7 +111,7 @@ def _contains_many(table: IntArray, keys: IntArray) -> NDArray[np.bool_]:
     out = np.zeros(len(keys), dtype=np.bool_)
     for i in range(len(keys)):
         if keys[i] >= 0:
-            out[i] = _contains(table, keys[i])
+            out[i] = contains_key(table, keys[i])
     return out
 
 
@@ -148,6 +152,44 @@ def _closest_per_cell(points: FloatArray, lower: FloatArray, voxel_size: float, 
     return keep
 
 
+@numba.njit(cache=True, parallel=True)
+def _count_hits(
+    points: FloatArray,
+    rotations: FloatArray,
+    pivot: FloatArray,
+    origin: FloatArray,
+    cube_size: float,
+    shifts: NDArray[np.int64],
+    table: NDArray[np.int64],
+) -> NDArray[np.int32]:
+    """scores[r, s] = how many ``R_r (p - pivot) + pivot`` shifted by ``shifts[s]`` cubes are occupied."""
+    n_rot = rotations.shape[0]
+    n_shift = shifts.shape[0]
+    scores = np.zeros((n_rot, n_shift), dtype=np.int32)
+    inverse = 1.0 / cube_size
+    limit = CELLS_PER_AXIS
+    for r in numba.prange(n_rot):
+        rot = rotations[r]
+        row = np.zeros(n_shift, dtype=np.int32)
+        for p in range(points.shape[0]):
+            x = points[p, 0] - pivot[0]
+            y = points[p, 1] - pivot[1]
+            z = points[p, 2] - pivot[2]
+            cx = np.int64(np.floor((rot[0, 0] * x + rot[0, 1] * y + rot[0, 2] * z + pivot[0] - origin[0]) * inverse))
+            cy = np.int64(np.floor((rot[1, 0] * x + rot[1, 1] * y + rot[1, 2] * z + pivot[1] - origin[1]) * inverse))
+            cz = np.int64(np.floor((rot[2, 0] * x + rot[2, 1] * y + rot[2, 2] * z + pivot[2] - origin[2]) * inverse))
+            for s in range(n_shift):
+                i = cx + shifts[s, 0]
+                j = cy + shifts[s, 1]
+                k = cz + shifts[s, 2]
+                if i < 0 or j < 0 or k < 0 or i >= limit or j >= limit or k >= limit:
+                    continue
+                if contains_key(table, (i << (2 * BITS_PER_AXIS)) | (j << BITS_PER_AXIS) | k):
+                    row[s] += 1
+        scores[r] = row
+    return scores
+
+
 class KeySet:
     """Membership test for packed cube keys (a hash set that numba kernels can read directly)."""
 
@@ -186,7 +228,7 @@ def reduce_points(points: FloatArray, voxel_size: float) -> IntArray:
     points) and spaces the kept points about one voxel apart, like a regular sample. Ties go to the
     lower index, so the result is deterministic. The grid is anchored at the cloud's minimum corner.
     """
-    points = _as_points(points)
+    points = as_points(points)
     voxel_size = _check_size(voxel_size)
     lower, upper = _bounds(points)
     span = float((upper - lower).max())
@@ -231,6 +273,25 @@ class Occupancy:
         """Whether each point falls in an occupied cube."""
         return self.key_set.contains(self.keys_of(points))
 
+    def count_hits(
+        self, points: FloatArray, rotations: FloatArray, pivot: FloatArray, shifts: NDArray[np.int64]
+    ) -> NDArray[np.int32]:
+        """``hits[r, s]``: how many of ``R_r (p - pivot) + pivot``, moved by ``shifts[s]`` whole cubes, are occupied.
+
+        The scoring core of the octree search. A shift of whole cubes moves a point's cell by exactly
+        that many cells, so each rotated point is discretised once and every shift costs one integer
+        add and one hash lookup.
+        """
+        return _count_hits(
+            np.ascontiguousarray(points, dtype=np.float64),
+            np.ascontiguousarray(rotations, dtype=np.float64).reshape(-1, 3, 3),
+            np.ascontiguousarray(pivot, dtype=np.float64),
+            self.origin,
+            float(self.cube_size),
+            np.ascontiguousarray(shifts, dtype=np.int64).reshape(-1, 3),
+            self.key_set.table,
+        )
+
 
 def _occupancy_from_keys(cube_size: float, origin: FloatArray, keys: IntArray, counts: IntArray) -> Occupancy:
     return Occupancy(cube_size, origin, keys, counts, KeySet(keys))
@@ -248,7 +309,7 @@ class Octree:
     """
 
     def __init__(self, points: FloatArray, leaf_size: float) -> None:
-        self.points = _as_points(points)
+        self.points = as_points(points)
         self.leaf_size = _check_size(leaf_size, "leaf_size")
         lower, upper = _bounds(self.points)
         self.origin: FloatArray = np.floor(lower / self.leaf_size) * self.leaf_size
