@@ -328,12 +328,48 @@ def point_colors(scene: PointScene, mode: str) -> NDArray[np.uint8]:
 # ---------------------------------------------------------------- kernels
 
 
+BLOCK = 256  # points per culling block: consecutive in Morton order, so each block is spatially compact
+_FAR_LOG = np.float32(1.0e30)  # log depth of an empty pixel: finite, so fastmath arithmetic stays exact
+
+
 @njit(parallel=True, fastmath=True, cache=True)
-def _splat_kernel(points, rot, trans, fx, fy, cx, cy, near, size_scale, max_size, buffers):  # pragma: no cover
-    """Each of ``buffers.shape[0]`` chunks of points splats into its own z-buffer of packed keys."""
+def _block_spheres(points, block):  # pragma: no cover
+    """Bounding sphere (centre, radius) of every run of ``block`` consecutive points."""
+    n = points.shape[0]
+    count = (n + block - 1) // block
+    centres = np.empty((count, 3), dtype=np.float64)
+    radii = np.empty(count, dtype=np.float64)
+    for b in prange(count):
+        start = b * block
+        stop = min(n, start + block)
+        lo = np.full(3, np.inf)
+        hi = np.full(3, -np.inf)
+        for i in range(start, stop):
+            for a in range(3):
+                lo[a] = min(lo[a], points[i, a])
+                hi[a] = max(hi[a], points[i, a])
+        r2 = 0.0
+        for a in range(3):
+            centres[b, a] = 0.5 * (lo[a] + hi[a])
+            r2 += (0.5 * (hi[a] - lo[a])) ** 2
+        radii[b] = math.sqrt(r2)
+    return centres, radii
+
+
+@njit(parallel=True, fastmath=True, cache=True)
+def _splat_kernel(
+    points, centres, radii, block, rot, trans, fx, fy, cx, cy, near, size_scale, max_size, planes, buffers
+):  # pragma: no cover
+    """Splat points into per-chunk z-buffers of packed (depth, index) keys.
+
+    Blocks are dealt out round-robin, so every chunk gets a share of what the camera sees (a
+    contiguous split would hand one thread the half of the map behind the camera). A block whose
+    bounding sphere lies outside the view frustum (``planes``: unit normals in the camera frame,
+    widened by half the largest splat) is skipped without touching its points.
+    """
     n = points.shape[0]
     chunks, height, width = buffers.shape
-    per_chunk = (n + chunks - 1) // chunks
+    blocks = centres.shape[0]
     empty = np.uint64(0xFFFFFFFFFFFFFFFF)
     r00, r01, r02, t0 = rot[0, 0], rot[0, 1], rot[0, 2], trans[0]
     r10, r11, r12, t1 = rot[1, 0], rot[1, 1], rot[1, 2], trans[1]
@@ -342,49 +378,63 @@ def _splat_kernel(points, rot, trans, fx, fy, cx, cy, near, size_scale, max_size
     for c in prange(chunks):
         buf = buffers[c]
         buf[:] = empty
-        start = c * per_chunk
-        stop = min(n, start + per_chunk)
-        for i in range(start, stop):
-            x = points[i, 0]
-            y = points[i, 1]
-            z = points[i, 2]
-            zc = r20 * x + r21 * y + r22 * z + t2
-            if zc <= near:
+        for b in range(c, blocks, chunks):
+            bx, by, bz = centres[b, 0], centres[b, 1], centres[b, 2]
+            px = r00 * bx + r01 * by + r02 * bz + t0
+            py = r10 * bx + r11 * by + r12 * bz + t1
+            pz = r20 * bx + r21 * by + r22 * bz + t2
+            radius = radii[b]
+            if pz + radius <= near:
                 continue
-            inv = 1.0 / zc
-            u = fx * (r00 * x + r01 * y + r02 * z + t0) * inv + cx
-            v = fy * (r10 * x + r11 * y + r12 * z + t1) * inv + cy
-            key = (np.uint64(min(zc, max_depth) * 1.0e5) << np.uint64(32)) | np.uint64(i)
-            size = int(size_scale * inv + 0.5)
-            if size <= 1:
-                if 0.0 <= u < width and 0.0 <= v < height:
-                    col = int(u)
-                    row = int(v)
-                    if key < buf[row, col]:
-                        buf[row, col] = key
+            outside = False
+            for k in range(4):
+                if planes[k, 0] * px + planes[k, 1] * py + planes[k, 2] * pz < -radius:
+                    outside = True
+                    break
+            if outside:
                 continue
-            if size > max_size:
-                size = max_size
-            half = 0.5 * (size - 1)
-            uf = u - half
-            vf = v - half
-            if uf >= width or vf >= height or uf + size <= 0.0 or vf + size <= 0.0:
-                continue
-            c0 = math.floor(uf)
-            r0 = math.floor(vf)
-            c1 = min(c0 + size, width)
-            r1 = min(r0 + size, height)
-            c0 = max(c0, 0)
-            r0 = max(r0, 0)
-            for r in range(r0, r1):
-                for cc in range(c0, c1):
-                    if key < buf[r, cc]:
-                        buf[r, cc] = key
+            for i in range(b * block, min(n, (b + 1) * block)):
+                x = points[i, 0]
+                y = points[i, 1]
+                z = points[i, 2]
+                zc = r20 * x + r21 * y + r22 * z + t2
+                if zc <= near:
+                    continue
+                inv = 1.0 / zc
+                u = fx * (r00 * x + r01 * y + r02 * z + t0) * inv + cx
+                v = fy * (r10 * x + r11 * y + r12 * z + t1) * inv + cy
+                key = (np.uint64(min(zc, max_depth) * 1.0e5) << np.uint64(32)) | np.uint64(i)
+                size = int(size_scale * inv + 0.5)
+                if size <= 1:
+                    if 0.0 <= u < width and 0.0 <= v < height:
+                        col = int(u)
+                        row = int(v)
+                        if key < buf[row, col]:
+                            buf[row, col] = key
+                    continue
+                if size > max_size:
+                    size = max_size
+                half = 0.5 * (size - 1)
+                uf = u - half
+                vf = v - half
+                if uf >= width or vf >= height or uf + size <= 0.0 or vf + size <= 0.0:
+                    continue
+                c0 = math.floor(uf)
+                r0 = math.floor(vf)
+                c1 = min(c0 + size, width)
+                r1 = min(r0 + size, height)
+                c0 = max(c0, 0)
+                r0 = max(r0, 0)
+                for r in range(r0, r1):
+                    for cc in range(c0, c1):
+                        if key < buf[r, cc]:
+                            buf[r, cc] = key
 
 
 @njit(parallel=True, fastmath=True, cache=True)
-def _resolve_kernel(buffers, depth, log_depth, index):  # pragma: no cover
-    """Per-pixel minimum over the chunk buffers -> depth (inf if empty), its log2 for EDL, point index (-1)."""
+def _resolve_kernel(buffers, pad, depth, log_depth, index):  # pragma: no cover
+    """Per-pixel minimum over the chunk buffers -> depth (inf if empty), point index (-1), and log2 depth
+    into the interior of ``log_depth``, whose ``pad``-wide border stays empty so EDL needs no bounds checks."""
     chunks, height, width = buffers.shape
     empty = np.uint64(0xFFFFFFFFFFFFFFFF)
     low_mask = np.uint64(0xFFFFFFFF)
@@ -396,24 +446,39 @@ def _resolve_kernel(buffers, depth, log_depth, index):  # pragma: no cover
                     best = buffers[k, r, c]
             if best == empty:
                 depth[r, c] = np.inf
-                log_depth[r, c] = np.inf
+                log_depth[r + pad, c + pad] = 1.0e30
                 index[r, c] = -1
             else:
                 d = max(np.float32((best >> np.uint64(32)) * 1.0e-5), np.float32(1e-5))
                 depth[r, c] = d
-                log_depth[r, c] = math.log2(d)
-                index[r, c] = np.int64(best & low_mask)
+                log_depth[r + pad, c + pad] = math.log2(d)
+                index[r, c] = np.int32(best & low_mask)
 
 
 @njit(parallel=True, fastmath=True, cache=True)
 def _shade_kernel(
-    depth, log_depth, index, colors, background, edl_strength, edl_offsets, fog_distance, image
+    depth, log_depth, pad, index, colors, background, edl_strength, edl_offsets, fog_distance, image
 ):  # pragma: no cover
-    """Colour every pixel: point colour x EDL factor, faded towards the background by depth fog."""
+    """Colour every pixel: point colour x EDL factor, faded towards the background by depth fog.
+
+    EDL response of a pixel = mean over its ring of neighbours of how much farther (in log depth)
+    it is than each; only pixels behind a neighbour darken, which outlines edges and creases.
+    Computed a row at a time over the padded log-depth image so the inner loops vectorise.
+    """
     height, width = depth.shape
     neighbours = edl_offsets.shape[0]
     b0, b1, b2 = background[0], background[1], background[2]
+    edl_scale = edl_strength / neighbours
     for r in prange(height):
+        response = np.zeros(width, dtype=np.float32)
+        if edl_strength > 0.0:
+            centre = log_depth[r + pad, pad : pad + width]
+            for k in range(neighbours):
+                rr = r + pad + edl_offsets[k, 0]
+                c0 = pad + edl_offsets[k, 1]
+                other = log_depth[rr, c0 : c0 + width]
+                for c in range(width):
+                    response[c] += max(centre[c] - other[c], np.float32(0.0))
         for c in range(width):
             i = index[r, c]
             if i < 0:
@@ -421,26 +486,23 @@ def _shade_kernel(
                 image[r, c, 1] = np.uint8(b1)
                 image[r, c, 2] = np.uint8(b2)
                 continue
-            shade = 1.0
-            if edl_strength > 0.0:
-                log_d = log_depth[r, c]
-                response = 0.0
-                for k in range(neighbours):
-                    rr = r + edl_offsets[k, 0]
-                    cc = c + edl_offsets[k, 1]
-                    if 0 <= rr < height and 0 <= cc < width:
-                        diff = log_d - log_depth[rr, cc]
-                        if diff > 0.0:  # a background neighbour (inf) gives -inf: no darkening
-                            response += diff
-                shade = math.exp(-response * edl_strength / neighbours)
-            fog = 1.0
-            if fog_distance > 0.0:
-                fog = math.exp(-depth[r, c] / fog_distance)
+            shade = math.exp(-response[c] * edl_scale) if edl_strength > 0.0 else 1.0
+            fog = math.exp(-depth[r, c] / fog_distance) if fog_distance > 0.0 else 1.0
             k0 = shade * fog
             k1 = 1.0 - fog
             image[r, c, 0] = np.uint8(min(255.0, colors[i, 0] * k0 + b0 * k1 + 0.5))
             image[r, c, 1] = np.uint8(min(255.0, colors[i, 1] * k0 + b1 * k1 + 0.5))
             image[r, c, 2] = np.uint8(min(255.0, colors[i, 2] * k0 + b2 * k1 + 0.5))
+
+
+def _frustum_planes(camera: Camera, margin: float) -> NDArray[np.float64]:
+    """Inward unit normals (camera frame) of the four side planes, the image widened by ``margin`` pixels."""
+    left, right = camera.cx + margin, camera.width - camera.cx + margin
+    top, bottom = camera.cy + margin, camera.height - camera.cy + margin
+    planes = np.array(
+        [[camera.fx, 0.0, left], [-camera.fx, 0.0, right], [0.0, camera.fy, top], [0.0, -camera.fy, bottom]]
+    )
+    return planes / np.linalg.norm(planes, axis=1, keepdims=True)
 
 
 # ---------------------------------------------------------------- renderer
@@ -494,8 +556,11 @@ class Renderer:
         chunks = max(1, numba.get_num_threads())
         self._buffers = np.empty((chunks, self.height, self.width), dtype=np.uint64)
         self.depth = np.empty((self.height, self.width), dtype=np.float32)
-        self._log_depth = np.empty((self.height, self.width), dtype=np.float32)
-        self.index = np.empty((self.height, self.width), dtype=np.int64)
+        self.index = np.empty((self.height, self.width), dtype=np.int32)
+        self._pad = int(self.options.edl_radius)
+        self._log_depth = np.full((self.height + 2 * self._pad, self.width + 2 * self._pad), _FAR_LOG, dtype=np.float32)
+        if len(scene):
+            self._centres, self._radii = _block_spheres(scene.points, BLOCK)
         self._background = np.array(self.options.background, dtype=np.float64)
         # The eight neighbours EDL compares each pixel with, ``edl_radius`` pixels away.
         ring = [(1, 0), (-1, 0), (0, 1), (0, -1), (1, 1), (-1, -1), (1, -1), (-1, 1)]
@@ -504,7 +569,7 @@ class Renderer:
     def camera(self, pose: Matrix, fov_deg: float = 60.0) -> Camera:
         return Camera.from_fov(pose, self.width, self.height, fov_deg)
 
-    def rasterize(self, camera: Camera) -> tuple[NDArray[np.float32], NDArray[np.int64]]:
+    def rasterize(self, camera: Camera) -> tuple[NDArray[np.float32], NDArray[np.int32]]:
         """Z-buffer only: per-pixel depth along the camera's z (inf where empty) and point index (-1)."""
         if (camera.width, camera.height) != (self.width, self.height):
             raise ValueError(f"camera is {camera.width}x{camera.height}, renderer is {self.width}x{self.height}")
@@ -513,11 +578,14 @@ class Renderer:
         trans = rot @ self.scene.origin + camera_from_world[:3, 3]  # points are stored relative to the origin
         if len(self.scene) == 0:
             self.depth.fill(np.inf)
-            self._log_depth.fill(np.inf)
+            self._log_depth.fill(_FAR_LOG)
             self.index.fill(-1)
             return self.depth, self.index
         _splat_kernel(
             self.scene.points,
+            self._centres,
+            self._radii,
+            BLOCK,
             np.ascontiguousarray(rot),
             np.ascontiguousarray(trans),
             float(camera.fx),
@@ -527,9 +595,10 @@ class Renderer:
             float(self.options.near),
             float(self.options.point_size * camera.fx),
             int(self.options.max_splat),
+            _frustum_planes(camera, 0.5 * self.options.max_splat + 1.0),
             self._buffers,
         )
-        _resolve_kernel(self._buffers, self.depth, self._log_depth, self.index)
+        _resolve_kernel(self._buffers, self._pad, self.depth, self._log_depth, self.index)
         return self.depth, self.index
 
     def render(self, camera: Camera, out: NDArray[np.uint8] | None = None) -> NDArray[np.uint8]:
@@ -540,6 +609,7 @@ class Renderer:
         _shade_kernel(
             self.depth,
             self._log_depth,
+            self._pad,
             self.index,
             colors,
             self._background,

@@ -1,0 +1,147 @@
+"""Fly-through rendering speed: frames per second of the numba renderer against a plain numpy z-buffer.
+
+    .venv/bin/python benchmarks/render.py            # synthetic hall, 1280x720/2M and 640x480/1M
+    .venv/bin/python benchmarks/render.py --balm     # also the real BALM hall map (needs ../shared/data)
+    .venv/bin/python benchmarks/render.py --video    # also end-to-end MP4 encoding
+
+Frames are rendered along a camera path through the scene, so every frame sees a different mix of
+near (large splat) and far points. The machine may be shared: each figure is the best of several
+passes over the path (the least disturbed one) with the median pass alongside.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numba
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+from slam6d.camera_path import CameraPath, Keyframe  # noqa: E402
+from slam6d.render import Camera, PointScene, Renderer, RenderOptions, point_colors, render_frames, scene_from_points  # noqa: E402
+
+
+def synthetic_hall(n: int, seed: int = 0) -> PointScene:
+    """A 40 x 20 x 6 m hall: floor, ceiling, walls and a few boxes, points spread evenly over the surfaces."""
+    rng = np.random.default_rng(seed)
+    parts = []
+    surfaces = [  # (weight, sampler)
+        (0.35, lambda k: np.c_[rng.uniform(0, 40, k), rng.uniform(0, 20, k), np.zeros(k)]),
+        (0.2, lambda k: np.c_[rng.uniform(0, 40, k), rng.uniform(0, 20, k), np.full(k, 6.0)]),
+        (0.15, lambda k: np.c_[rng.uniform(0, 40, k), rng.choice([0.0, 20.0], k), rng.uniform(0, 6, k)]),
+        (0.1, lambda k: np.c_[rng.choice([0.0, 40.0], k), rng.uniform(0, 20, k), rng.uniform(0, 6, k)]),
+    ]
+    for weight, sample in surfaces:
+        parts.append(sample(int(n * weight)))
+    boxes = n - sum(len(p) for p in parts)
+    centres = rng.uniform([3, 3, 0], [37, 17, 0], size=(12, 3))
+    which = rng.integers(0, len(centres), boxes)
+    offsets = rng.uniform(-1.0, 1.0, size=(boxes, 3))
+    face = rng.integers(0, 3, boxes)
+    offsets[np.arange(boxes), face] = np.sign(offsets[np.arange(boxes), face])  # points on the box surfaces
+    parts.append(centres[which] + offsets * [1.0, 1.0, 1.0] + [0.0, 0.0, 1.0])
+    points = np.concatenate(parts)
+    return scene_from_points(points, scan_index=rng.integers(0, 40, len(points)))
+
+
+def hall_path(scene: PointScene) -> CameraPath:
+    lo, hi = scene.bounds()
+    mid_y, z = (lo[1] + hi[1]) / 2, lo[2] + 1.6
+    ends = [lo[0] + 2.0, hi[0] - 2.0]
+    keys = [
+        Keyframe.looking_at([ends[0], mid_y - 3, z], [hi[0], mid_y, z - 0.5]),
+        Keyframe.looking_at([(ends[0] + ends[1]) / 2, mid_y + 2, z], [hi[0], mid_y - 4, z - 0.5]),
+        Keyframe.looking_at([ends[1], mid_y, z], [hi[0] + 5, mid_y + 6, z]),
+    ]
+    return CameraPath(keys)
+
+
+def numpy_zbuffer(points: np.ndarray, colors: np.ndarray, camera: Camera) -> np.ndarray:
+    """The plain numpy baseline: project, sort far-to-near, scatter (the last, nearest write wins)."""
+    inv = np.linalg.inv(camera.pose)
+    pc = points @ inv[:3, :3].T.astype(np.float32) + inv[:3, 3].astype(np.float32)
+    z = pc[:, 2]
+    front = z > 0.05
+    pc, z, col = pc[front], z[front], colors[front]
+    u = (camera.fx * pc[:, 0] / z + camera.cx).astype(np.int32)
+    v = (camera.fy * pc[:, 1] / z + camera.cy).astype(np.int32)
+    inside = (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
+    order = np.argsort(-z[inside], kind="stable")
+    image = np.zeros((camera.height, camera.width, 3), dtype=np.uint8)
+    image[v[inside][order], u[inside][order]] = col[inside][order]
+    return image
+
+
+def measure(render_one, cameras: list[Camera], passes: int) -> tuple[float, float]:
+    """(best, median) frames per second over ``passes`` runs along the path."""
+    render_one(cameras[0])  # compile / warm caches
+    rates = []
+    for _ in range(passes):
+        start = time.perf_counter()
+        for camera in cameras:
+            render_one(camera)
+        rates.append(len(cameras) / (time.perf_counter() - start))
+    return max(rates), statistics.median(rates)
+
+
+def bench(scene: PointScene, label: str, width: int, height: int, frames: int, passes: int, baseline: bool) -> None:
+    renderer = Renderer(scene, width, height, RenderOptions())
+    cameras = [renderer.camera(pose, fov) for pose, fov in hall_path(scene).sample(frames=frames)]
+    image = np.empty((height, width, 3), dtype=np.uint8)
+    best, median = measure(lambda cam: renderer.render(cam, image), cameras, passes)
+    covered = float((renderer.index >= 0).mean())
+    print(
+        f"{label:34s} {width}x{height} {len(scene) / 1e6:4.1f}M  numba: {best:6.1f} fps (median {median:5.1f})", end=""
+    )
+    if baseline:
+        colors = point_colors(scene, "height")
+        b_best, b_median = measure(lambda cam: numpy_zbuffer(scene.points, colors, cam), cameras, passes)
+        print(f"   numpy z-buffer: {b_best:5.1f} fps (median {b_median:5.1f})", end="")
+    print(f"   [{covered:.0%} of pixels covered]")
+
+
+def bench_video(scene: PointScene, width: int, height: int, frames: int) -> None:
+    renderer = Renderer(scene, width, height, RenderOptions())
+    cameras = [renderer.camera(pose, fov) for pose, fov in hall_path(scene).sample(frames=frames)]
+    renderer.render(cameras[0])
+    with tempfile.TemporaryDirectory() as tmp:
+        result = render_frames(renderer, cameras, Path(tmp) / "bench.mp4", fps=30)
+    print(
+        f"{'end-to-end MP4 (H.264)':34s} {width}x{height} {len(scene) / 1e6:4.1f}M  {result.frames_per_second:6.1f} fps"
+    )
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--frames", type=int, default=60, help="frames per pass along the path")
+    parser.add_argument("--passes", type=int, default=5)
+    parser.add_argument("--balm", action="store_true", help="also render the real BALM hall map")
+    parser.add_argument("--video", action="store_true", help="also measure end-to-end MP4 writing")
+    args = parser.parse_args()
+    print(f"numba {numba.__version__}, {numba.get_num_threads()} threads, threading layer ", end="")
+    hall2m, hall1m = synthetic_hall(2_000_000), synthetic_hall(1_000_000)
+    Renderer(hall1m, 8, 8).render(Camera.from_fov(np.eye(4), 8, 8))
+    print(numba.threading_layer())
+    bench(hall2m, "synthetic hall", 1280, 720, args.frames, args.passes, baseline=True)
+    bench(hall1m, "synthetic hall", 640, 480, args.frames, args.passes, baseline=True)
+    if args.balm:
+        from slam6d.render import load_render_input
+
+        data = ROOT.parent / "shared" / "data" / "balm_hall"
+        scene, _ = load_render_input(
+            data / "velodyne_style_bin", poses_file=data / "poses_subset_kitti3x4.txt", max_points=2_000_000
+        )
+        bench(scene, "BALM hall (real, 89 scans)", 1280, 720, args.frames, args.passes, baseline=False)
+    if args.video:
+        bench_video(hall2m, 1280, 720, 150)
+
+
+if __name__ == "__main__":
+    main()
