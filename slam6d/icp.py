@@ -36,7 +36,7 @@ from numpy.typing import NDArray
 
 from slam6d import nn
 from slam6d.errors import RegistrationError
-from slam6d.geometry import axis_angle_to_rotation, invert, make_pose, rotation_angle, transform_points
+from slam6d.geometry import axis_angle_to_rotation, make_pose, rotation_angle, transform_points
 from slam6d.octree import reduce_points
 
 FloatArray = NDArray[np.float64]
@@ -347,9 +347,17 @@ def _as_data(data: FloatArray) -> FloatArray:
 
 
 def _as_transform(transform: FloatArray) -> FloatArray:
+    """A float64 copy; a rotation that is not quite orthonormal (poses stored with few digits) is
+    replaced by the nearest rotation, so that the result stays a rigid motion."""
     t = np.array(transform, dtype=np.float64)
     if t.shape != (4, 4):
         raise ValueError(f"transform must be 4x4, got shape {t.shape}")
+    r = t[:3, :3]
+    if np.abs(r @ r.T - np.eye(3)).max() > 1e-12:
+        u, _, vt = np.linalg.svd(r)
+        if np.linalg.det(u @ vt) < 0:
+            raise ValueError("transform's 3x3 part is a reflection, not a rotation")
+        t[:3, :3] = u @ vt
     return t
 
 
@@ -429,17 +437,30 @@ def _prepare_data(data: FloatArray, config: ICPConfig) -> FloatArray:
     return data
 
 
-def _motion(a: FloatArray, b: FloatArray) -> tuple[float, float]:
-    """Translation and rotation angle of ``a · b⁻¹``, the motion that takes pose ``b`` to pose ``a``."""
-    delta = a @ invert(b)
-    return float(np.linalg.norm(delta[:3, 3])), rotation_angle(delta[:3, :3])
+def _small(motion: FloatArray, tolerance: float) -> bool:
+    return float(np.linalg.norm(motion[:3, 3])) <= tolerance and rotation_angle(motion[:3, :3]) <= tolerance
+
+
+def _settled(steps: list[FloatArray], tolerance: float) -> bool:
+    """Whether the newest pose is within ``tolerance`` of one of the previous ``_CYCLE`` poses of the stage.
+
+    The motion from ``T_{k-m}`` to ``T_k`` is the product of the last m steps. Composing the steps
+    (always exact rotations) rather than comparing poses keeps the test exact even when the initial
+    pose came from a file with a slightly non-orthonormal rotation.
+    """
+    motion = np.eye(4)
+    for step in reversed(steps[-_CYCLE:]):
+        motion = motion @ step
+        if _small(motion, tolerance):
+            return True
+    return False
 
 
 def _iterate(model: ModelIndex, data: FloatArray, transform: FloatArray, config: ICPConfig) -> Iterator[ICPIteration]:
     point_to_plane = config.method == "point_to_plane"
     stages = config.stages()
     stage = 0
-    recent = [transform]  # poses of the current stage, newest last, for the convergence and cycle test
+    steps: list[FloatArray] = []  # updates of the current stage, newest last
     for index in range(config.max_iterations):
         max_distance = stages[stage]
         last_stage = stage == len(stages) - 1
@@ -462,9 +483,8 @@ def _iterate(model: ModelIndex, data: FloatArray, transform: FloatArray, config:
         transform = step @ transform
         step_t = float(np.linalg.norm(step[:3, 3]))
         step_r = rotation_angle(step[:3, :3])
-        stage_done = any(
-            t <= tolerance and r <= tolerance for t, r in (_motion(transform, pose) for pose in recent[-_CYCLE:])
-        )
+        steps.append(step)
+        stage_done = _settled(steps, tolerance)
         finished = stage_done and last_stage
         yield ICPIteration(
             index=index,
@@ -480,8 +500,7 @@ def _iterate(model: ModelIndex, data: FloatArray, transform: FloatArray, config:
             return
         if stage_done:
             stage += 1
-            recent = []
-        recent.append(transform)
+            steps = []
 
 
 def icp(
