@@ -1,0 +1,278 @@
+"""ICP: recovery of known motions, the max-distance rule, convergence and trace, errors, real pairs."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from slam6d.errors import RegistrationError
+from slam6d.geometry import invert, make_pose, pose_difference, pose_from_xyzrpy, rot_z, transform_points
+from slam6d.icp import (
+    ICPConfig,
+    ModelIndex,
+    correspondences,
+    count_pairs,
+    estimate_normals,
+    icp,
+    icp_iterations,
+)
+from slam6d.nn import build_index
+from slam6d.trace import to_jsonable
+
+METHODS = ["point_to_point", "point_to_plane"]
+# model_from_data used by the synthetic tests: 0.15 m and about 3°
+MOTION = pose_from_xyzrpy(0.1, -0.08, 0.05, np.radians(1.0), np.radians(-1.5), np.radians(2.5))
+
+
+def sample_box_surface(rng: np.random.Generator, lo: np.ndarray, hi: np.ndarray, count: int) -> np.ndarray:
+    """Points uniformly on the six faces of an axis-aligned box, proportional to face area."""
+    size = hi - lo
+    areas = np.array([size[1] * size[2], size[0] * size[2], size[0] * size[1]] * 2)
+    face = rng.choice(6, count, p=areas / areas.sum())
+    points = lo + rng.uniform(0.0, 1.0, (count, 3)) * size
+    axis = face % 3
+    points[np.arange(count), axis] = np.where(face < 3, lo[axis], hi[axis])
+    return points
+
+
+def scene(rng: np.random.Generator, count: int = 6000) -> np.ndarray:
+    """An indoor-like scene: a 10 x 7 x 3 m room with three boxes and a ramp, so all six motions are constrained."""
+    parts = [
+        sample_box_surface(rng, np.array([-5.0, -3.0, 0.0]), np.array([5.0, 4.0, 3.0]), count * 6 // 10),
+        sample_box_surface(rng, np.array([1.0, 1.0, 0.0]), np.array([2.0, 2.5, 1.0]), count // 10),
+        sample_box_surface(rng, np.array([-3.0, -2.0, 0.0]), np.array([-2.2, -0.5, 1.8]), count // 10),
+        sample_box_surface(rng, np.array([-1.0, 2.0, 0.5]), np.array([0.2, 2.6, 1.2]), count // 10),
+    ]
+    u = rng.uniform(0.0, 1.0, (count // 10, 2))
+    parts.append(np.column_stack([3.0 + 1.5 * u[:, 0], -2.5 + 2.0 * u[:, 1], 0.6 * u[:, 0]]))  # ramp
+    return np.vstack(parts)
+
+
+@pytest.fixture(scope="module")
+def model() -> np.ndarray:
+    return scene(np.random.default_rng(1))
+
+
+@pytest.fixture(scope="module")
+def model_index(model: np.ndarray) -> ModelIndex:
+    return ModelIndex(model, normal_voxel_size=0.0)
+
+
+def copy_of(model: np.ndarray, truth: np.ndarray = MOTION) -> np.ndarray:
+    """The model's own points seen from a scanner moved by ``truth`` (model_from_data)."""
+    return transform_points(invert(truth), model)
+
+
+def assert_pose_close(actual: np.ndarray, expected: np.ndarray, metres: float, degrees: float) -> None:
+    dt, dr = pose_difference(actual, expected)
+    assert dt <= metres and np.degrees(dr) <= degrees, f"off by {dt * 1e3:.3f} mm / {np.degrees(dr):.4f} deg"
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_recovers_known_motion_exactly(method: str, model_index: ModelIndex, model: np.ndarray) -> None:
+    config = ICPConfig(method=method, distance_schedule=(1.0, 0.5), max_iterations=200)
+    result = icp(model_index, copy_of(model), np.eye(4), config)
+    assert result.converged
+    assert_pose_close(result.transform, MOTION, 1e-4, 0.01)
+    assert result.fitness > 0.99
+    assert result.rms < 1e-3
+
+
+def test_point_to_plane_recovers_motion_between_different_samplings(model_index: ModelIndex) -> None:
+    """A second scan never hits the same surface points; planes still pin the motion down."""
+    other = copy_of(scene(np.random.default_rng(2)))
+    result = icp(model_index, other, np.eye(4), ICPConfig(distance_schedule=(1.0, 0.5)))
+    assert result.converged
+    assert_pose_close(result.transform, MOTION, 3e-3, 0.1)  # edges of the sparse scene blur normals: ~1.5 mm
+
+
+def test_point_to_plane_needs_fewer_iterations_than_point_to_point(model_index: ModelIndex, model: np.ndarray) -> None:
+    data = copy_of(model)
+    counts = {
+        m: len(icp(model_index, data, np.eye(4), ICPConfig(method=m, max_iterations=300)).iterations) for m in METHODS
+    }
+    assert counts["point_to_plane"] < counts["point_to_point"]
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_far_outliers_are_rejected_by_the_max_distance(method: str, model_index: ModelIndex, model: np.ndarray) -> None:
+    data = copy_of(model)
+    rng = np.random.default_rng(3)
+    outliers = rng.normal([0.0, 0.0, 9.0], 0.5, (1500, 3))  # a cluster 6 m above the ceiling
+    config = ICPConfig(method=method, distance_schedule=(1.0, 0.5), max_iterations=200)
+    clean = icp(model_index, data, np.eye(4), config)
+    dirty = icp(model_index, np.vstack([data, outliers]), np.eye(4), config)
+    assert_pose_close(dirty.transform, clean.transform, 1e-9, 1e-7)
+    assert dirty.pairs == clean.pairs
+    # without the bound the same outliers drag the result far away (the bound is what protects it)
+    unbounded = icp(model_index, np.vstack([data, outliers]), np.eye(4), ICPConfig(method=method, max_distance=50.0))
+    assert pose_difference(unbounded.transform, MOTION)[0] > 0.05
+
+
+def test_iteration_cap_is_respected_and_reported(model_index: ModelIndex, model: np.ndarray) -> None:
+    config = ICPConfig(method="point_to_point", max_iterations=3)
+    result = icp(model_index, copy_of(model), np.eye(4), config)
+    assert len(result.iterations) == 3
+    assert not result.converged
+    assert not any(it.converged for it in result.iterations)
+
+
+def test_convergence_stops_at_a_small_update(model_index: ModelIndex, model: np.ndarray) -> None:
+    config = ICPConfig(epsilon=1e-6, max_iterations=100)
+    result = icp(model_index, copy_of(model), np.eye(4), config)
+    last = result.iterations[-1]
+    assert result.converged and last.converged
+    assert len(result.iterations) < 100
+    assert last.step_translation <= 1e-6 and last.step_rotation <= 1e-6
+    assert not any(it.converged for it in result.iterations[:-1])
+    # a looser epsilon stops earlier
+    loose = icp(model_index, copy_of(model), np.eye(4), ICPConfig(epsilon=1e-2, max_iterations=100))
+    assert loose.converged and len(loose.iterations) < len(result.iterations)
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_trace_has_one_entry_per_iteration_with_falling_rms(
+    method: str, model_index: ModelIndex, model: np.ndarray
+) -> None:
+    config = ICPConfig(method=method, max_iterations=200)
+    steps = list(icp_iterations(model_index, copy_of(model), np.eye(4), config))
+    assert [s.index for s in steps] == list(range(len(steps)))
+    assert len(steps) >= 3
+    rms = np.array([s.rms for s in steps])
+    assert np.all(np.diff(rms) <= 1e-9)
+    assert rms[-1] < 0.1 * rms[0]
+    # each entry carries the pose after its step, and the result's transform is the last one
+    result = icp(model_index, copy_of(model), np.eye(4), config)
+    assert len(result.iterations) == len(steps)
+    np.testing.assert_allclose(result.transform, steps[-1].transform)
+    trace = json.loads(json.dumps(to_jsonable(result)))
+    assert len(trace["iterations"]) == len(steps)
+    assert np.array(trace["iterations"][0]["transform"]).shape == (4, 4)
+    assert {"pairs", "rms", "max_distance"} <= trace["iterations"][0].keys()
+
+
+def test_too_few_pairs_raise_registration_error(model_index: ModelIndex, model: np.ndarray) -> None:
+    far = transform_points(make_pose(np.eye(3), [40.0, 0.0, 0.0]), model)
+    with pytest.raises(RegistrationError, match=r"only 0 of .* within 0.25 m"):
+        icp(model_index, far, np.eye(4))
+    with pytest.raises(RegistrationError, match="need 20"):
+        icp(model_index, model[:10], np.eye(4))
+
+
+def test_distance_schedule_is_used_coarse_to_fine(model_index: ModelIndex, model: np.ndarray) -> None:
+    config = ICPConfig(max_distance=0.25, distance_schedule=(1.0, 0.5))
+    assert config.stages() == (1.0, 0.5, 0.25)
+    steps = list(icp_iterations(model_index, copy_of(model), np.eye(4), config))
+    used = [s.max_distance for s in steps]
+    assert [d for i, d in enumerate(used) if i == 0 or d != used[i - 1]] == [1.0, 0.5, 0.25]
+    assert steps[-1].converged and steps[-1].max_distance == 0.25
+    # a schedule that already ends at max_distance is used as is
+    assert ICPConfig(max_distance=0.25, distance_schedule=(1.0, 0.25)).stages() == (1.0, 0.25)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"method": "nearest"}, "unknown ICP method"),
+        ({"distance_schedule": (0.5, 1.0)}, "coarse to fine"),
+        ({"distance_schedule": (1.0, 0.1)}, "below max_distance"),
+        ({"max_iterations": 0}, "max_iterations"),
+        ({"max_distance": -1.0}, "max_distance"),
+    ],
+)
+def test_bad_config_is_refused(kwargs: dict, message: str) -> None:
+    with pytest.raises(ValueError, match=message):
+        ICPConfig(**kwargs)
+
+
+def test_count_pairs_counts_data_points_within_the_distance() -> None:
+    grid = np.stack(np.meshgrid(*[np.arange(5.0)] * 3, indexing="ij"), axis=-1).reshape(-1, 3)  # 1 m spacing
+    data = grid + np.where(np.arange(len(grid)) % 2 == 0, 0.05, 0.3)[:, None] * np.array([0.0, 0.0, 1.0])
+    index = ModelIndex(grid)
+    assert count_pairs(index, data, np.eye(4), 0.1) == (len(grid) + 1) // 2
+    assert count_pairs(index, data, np.eye(4), 0.35) == len(grid)
+    # the transform is applied to the data first: shifting down 5 cm makes the first half exact
+    down = make_pose(np.eye(3), [0.0, 0.0, -0.05])
+    assert count_pairs(index, data, down, 1e-9) == (len(grid) + 1) // 2
+    assert count_pairs(grid, data, np.eye(4), 0.1) == (len(grid) + 1) // 2  # a plain array works too
+
+
+def test_correspondences_are_capped_spread_and_within_distance(model_index: ModelIndex, model: np.ndarray) -> None:
+    data = copy_of(model)
+    data_idx, model_idx = correspondences(model_index, data, MOTION, 0.05, limit=500)
+    assert len(data_idx) == len(model_idx) == 500
+    gaps = np.linalg.norm(transform_points(MOTION, data[data_idx]) - model[model_idx], axis=1)
+    assert gaps.max() <= 0.05
+    assert data_idx.min() < len(data) * 0.01 and data_idx.max() > len(data) * 0.99  # spread over the whole scan
+    all_idx, _ = correspondences(model_index, data, MOTION, 0.05, limit=10**9)
+    assert len(all_idx) == len(data)
+
+
+def test_model_index_is_reusable_and_equivalent_to_an_array(model: np.ndarray) -> None:
+    config = ICPConfig(normal_voxel_size=0.0, max_iterations=30)
+    index = ModelIndex(model, normal_voxel_size=0.0)
+    first = icp(index, copy_of(model), np.eye(4), config)
+    second = icp(index, copy_of(model, invert(MOTION)), np.eye(4), config)
+    assert_pose_close(second.transform, invert(MOTION), 1e-4, 0.01)
+    from_array = icp(model, copy_of(model), np.eye(4), config)
+    np.testing.assert_allclose(from_array.transform, first.transform, atol=1e-12)
+
+
+def test_data_reduction_keeps_real_points_and_accuracy(model_index: ModelIndex, model: np.ndarray) -> None:
+    data = copy_of(model)
+    reduced = icp(model_index, data, np.eye(4), ICPConfig(data_voxel_size=0.5, distance_schedule=(1.0,)))
+    assert reduced.data_points < len(data) // 2
+    assert_pose_close(reduced.transform, MOTION, 1e-4, 0.01)  # real points, not voxel centres: still exact
+
+
+def test_normals_are_perpendicular_to_planes_and_lines_are_refused() -> None:
+    rng = np.random.default_rng(4)
+    plane = np.column_stack([rng.uniform(-1, 1, (500, 2)), np.zeros(500)]) @ rot_z(0.3).T
+    tilted = plane @ pose_from_xyzrpy(0, 0, 0, 0.4, 0.0, 0.0)[:3, :3].T
+    normals, usable = estimate_normals(build_index(tilted), tilted, k=10)
+    assert usable.all()
+    expected = pose_from_xyzrpy(0, 0, 0, 0.4, 0.0, 0.0)[:3, 2]
+    np.testing.assert_allclose(np.abs(normals @ expected), 1.0, atol=1e-9)
+    line = np.column_stack([np.linspace(0, 1, 50), np.zeros(50), np.zeros(50)])
+    _, usable = estimate_normals(build_index(line), line, k=10)
+    assert not usable.any()
+
+
+# ---------------------------------------------------------------- real data
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("method", METHODS)
+def test_balm_consecutive_pair_matches_reference(method: str, shared_data: Path) -> None:
+    from slam6d.io.kitti import read_kitti_bin
+    from slam6d.io.poses import read_kitti_poses
+
+    hall = shared_data / "balm_hall"
+    poses = read_kitti_poses(hall / "poses_subset_kitti3x4.txt")
+    model = read_kitti_bin(hall / "velodyne_style_bin" / "000020.bin").points
+    data = read_kitti_bin(hall / "velodyne_style_bin" / "000021.bin").points
+    reference = invert(poses[20]) @ poses[21]
+    start = reference @ pose_from_xyzrpy(0.2, -0.2, 0.1, np.radians(2.0), np.radians(-2.0), np.radians(4.0))
+    config = ICPConfig(method=method, data_voxel_size=0.1, max_iterations=100)
+    result = icp(model, data, start, config)
+    assert result.converged
+    assert_pose_close(result.transform, reference, 0.01, 0.1)
+
+
+@pytest.mark.slow
+def test_libpointmatcher_car_pair_matches_ground_truth(shared_data: Path) -> None:
+    from slam6d.io.csv import read_csv_cloud, read_pointmatcher_list
+
+    (model_path, model_pose), (data_path, data_pose) = read_pointmatcher_list(
+        shared_data / "libpointmatcher_pairs" / "carCloudList.csv"
+    )
+    reference = invert(model_pose) @ data_pose
+    model = read_csv_cloud(model_path).points
+    data = read_csv_cloud(data_path).points
+    # from identity: the scans are ~15° and 0.2 m apart, so start coarse
+    result = icp(model, data, np.eye(4), ICPConfig(max_distance=0.25, distance_schedule=(1.0, 0.5)))
+    assert result.converged
+    assert_pose_close(result.transform, reference, 0.05, 0.5)
