@@ -1,0 +1,229 @@
+"""Loop closing: find scans that revisit a place, verify them, and spread the loop's error back.
+
+After sequential matching the trajectory has drifted; when the robot comes back near an earlier
+place, the scans there overlap although they are far apart along the path. Hypotheses come from
+the estimated poses alone (two scans closer than a fraction of the laser's range, far apart along
+the path), so no scan is ever matched against every earlier one. Each hypothesis is then checked
+twice: cheaply by the octree overlap (the fraction of the newer scan's cubes that land on occupied
+cubes of the older scan) and then by ICP fitness.
+
+A verified loop (i, j) tells where scan j should sit relative to scan i. Error diffusion (as in
+the seed) distributes that correction over the scans of the loop by path-length fraction:
+translation linearly, rotation by quaternion slerp, both about the loop's first scan, so the
+trajectory bends smoothly instead of jumping at scan j. Scans after j take the full correction,
+which keeps the trajectory continuous.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, replace
+
+import numpy as np
+from numpy.typing import NDArray
+
+from slam6d.errors import RegistrationError
+from slam6d.geometry import (
+    Matrix,
+    invert,
+    make_pose,
+    quaternion_to_rotation,
+    rotation_to_quaternion,
+    slerp,
+    transform_points,
+)
+from slam6d.icp import ICPConfig, ModelIndex, icp
+from slam6d.octree import Occupancy
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass
+class LoopHypothesis:
+    """A candidate loop between an older scan ``i`` and a newer scan ``j``.
+
+    ``transform`` is scan j in scan i's frame: before verification the one implied by the current
+    poses, after it the ICP result. ``distance`` and ``path_length`` are metres.
+    """
+
+    i: int
+    j: int
+    distance: float
+    path_length: float
+    overlap: float = 0.0
+    fitness: float = 0.0
+    rms: float = float("nan")
+    transform: Matrix | None = None
+    accepted: bool = False
+    reason: str = ""
+    correction: float = 0.0  # how far ICP moved scan j relative to scan i (metres)
+
+
+@dataclass(frozen=True)
+class LoopConfig:
+    """Defaults follow the seed's ELCH/LUM settings scaled to metres.
+
+    ``radius_fraction`` x max range bounds how far apart two scans of a loop may be; ``min_path``
+    (metres, and ``min_path_factor`` x their distance) keeps consecutive scans, which sequential
+    matching already related, from being called a loop.
+    """
+
+    radius_fraction: float = 0.25
+    min_path: float = 5.0
+    min_path_factor: float = 3.0
+    min_index_gap: int = 5
+    overlap_cube: float = 0.5
+    min_overlap: float = 0.3
+    min_fitness: float = 0.3
+    max_rms: float = 0.15
+    candidates_per_scan: int = 1
+    closing_gap: int = 5  # scans between two loop closings (a revisited stretch gives many loops at once)
+
+
+def path_lengths(poses: Sequence[Matrix]) -> FloatArray:
+    """Cumulative distance travelled along the trajectory, one value per scan (0 at scan 0)."""
+    positions = np.array([p[:3, 3] for p in poses])
+    steps = np.linalg.norm(np.diff(positions, axis=0), axis=1)
+    return np.concatenate([[0.0], np.cumsum(steps)])
+
+
+def find_loop_hypotheses(
+    poses: Sequence[Matrix],
+    max_range: float,
+    config: LoopConfig = LoopConfig(),
+    occupancies: Sequence[Occupancy] | Callable[[int], Occupancy] | None = None,
+    points: Sequence[FloatArray] | None = None,
+    last_only: int | None = None,
+) -> list[LoopHypothesis]:
+    """Candidate loops from poses alone, best first per newer scan.
+
+    With ``occupancies`` (each scan's cubes, own frame; a list or a function of the scan index,
+    so they can be built on demand) and ``points`` (own frame) the overlap is
+    computed and candidates below ``config.min_overlap`` are kept but marked rejected, so the trace
+    shows why they were not tried. ``last_only`` restricts the newer scan to the last one (online use).
+    """
+    if max_range <= 0:
+        raise ValueError(f"max_range must be positive, got {max_range}")
+    positions = np.array([p[:3, 3] for p in poses])
+    travelled = path_lengths(poses)
+    radius = config.radius_fraction * max_range
+    newest = range(len(poses) - 1, len(poses)) if last_only else range(len(poses))
+    found: list[LoopHypothesis] = []
+    for j in newest:
+        older = np.arange(0, max(0, j - config.min_index_gap + 1))
+        if len(older) == 0:
+            continue
+        dist = np.linalg.norm(positions[older] - positions[j], axis=1)
+        path = travelled[j] - travelled[older]
+        ok = (dist <= radius) & (path >= config.min_path) & (path >= config.min_path_factor * dist)
+        candidates = []
+        for i in older[ok]:
+            rel = invert(poses[i]) @ poses[j]
+            hyp = LoopHypothesis(int(i), j, float(dist[i]), float(path[i]), transform=rel)
+            if occupancies is not None and points is not None:
+                occupancy = occupancies(int(i)) if callable(occupancies) else occupancies[i]
+                hyp.overlap = octree_overlap(occupancy, points[j], rel)
+                if hyp.overlap < config.min_overlap:
+                    hyp.reason = f"overlap {hyp.overlap:.2f} < {config.min_overlap}"
+            candidates.append(hyp)
+        # prefer high overlap, then the oldest scan (the longest loop carries the most drift)
+        candidates.sort(key=lambda h: (bool(h.reason), -h.overlap, h.i))
+        found.extend(candidates)
+    return found
+
+
+def octree_overlap(model: Occupancy, data_points: FloatArray, transform: Matrix) -> float:
+    """Fraction of the data scan's occupied cubes that fall on occupied model cubes."""
+    moved = transform_points(transform, data_points)
+    keys = np.unique(model.keys_of(moved))
+    keys = keys[keys >= 0]
+    if len(keys) == 0:
+        return 0.0
+    return float(np.count_nonzero(model.key_set.contains(keys)) / len(keys))
+
+
+def verify(
+    hypothesis: LoopHypothesis,
+    model: ModelIndex,
+    data_points: FloatArray,
+    icp_config: ICPConfig,
+    config: LoopConfig = LoopConfig(),
+) -> LoopHypothesis:
+    """Match scan j against scan i (own frames) from the pose-implied start; accept on ICP fitness and rms.
+
+    ICP runs coarse to fine from four times its max distance, because the drift a loop is meant to
+    remove is usually larger than the tolerance used between consecutive scans.
+    """
+    if hypothesis.reason:
+        return hypothesis
+    start = hypothesis.transform if hypothesis.transform is not None else np.eye(4)
+    d = icp_config.max_distance
+    schedule = tuple(s for s in (4 * d, 2 * d) if not icp_config.distance_schedule) or icp_config.distance_schedule
+    cfg = replace(icp_config, distance_schedule=schedule)
+    try:
+        result = icp(model, data_points, start, cfg)
+    except RegistrationError as exc:
+        return replace(hypothesis, accepted=False, reason=f"ICP failed: {exc}")
+    moved, _ = _pose_change(start, result.transform, data_points)
+    verdict = replace(
+        hypothesis,
+        fitness=result.fitness,
+        rms=result.rms,
+        transform=result.transform,
+        correction=moved,
+    )
+    if result.fitness < config.min_fitness:
+        verdict.reason = f"ICP fitness {result.fitness:.2f} < {config.min_fitness}"
+    elif result.rms > config.max_rms:
+        verdict.reason = f"ICP rms {result.rms:.3f} m > {config.max_rms} m"
+    else:
+        verdict.accepted = True
+    return verdict
+
+
+def _pose_change(before: Matrix, after: Matrix, points: FloatArray) -> tuple[float, float]:
+    """Mean and max displacement of a scan's points between two placements (metres)."""
+    sample = points[:: max(1, len(points) // 500)]
+    shift = np.linalg.norm(transform_points(after, sample) - transform_points(before, sample), axis=1)
+    return float(shift.mean()), float(shift.max())
+
+
+def loop_correction(poses: Sequence[Matrix], loop: LoopHypothesis) -> Matrix:
+    """World-frame correction that moves scan j to where the verified loop says it belongs."""
+    if loop.transform is None:
+        raise ValueError("the loop has no transform")
+    return poses[loop.i] @ loop.transform @ invert(poses[loop.j])
+
+
+def diffuse_loop_correction(
+    poses: Sequence[Matrix],
+    i: int,
+    j: int,
+    correction: Matrix,
+    pivot: FloatArray | None = None,
+) -> list[Matrix]:
+    """Spread a world-frame ``correction`` of scan j over scans i+1..j by path-length fraction.
+
+    The correction is split into a rotation about ``pivot`` (scan i's position by default) and a
+    translation; scan k gets fraction f_k = path(i..k) / path(i..j) of both (slerp / linear). Scan i
+    and earlier stay put; scans after j get the full correction so the trajectory stays continuous.
+    """
+    if not 0 <= i < j < len(poses):
+        raise ValueError(f"loop ({i}, {j}) is not inside 0..{len(poses) - 1} with i < j")
+    pivot = np.asarray(poses[i][:3, 3] if pivot is None else pivot, dtype=np.float64)
+    rotation = correction[:3, :3]
+    # correction(x) = R (x - pivot) + pivot + shift
+    shift = correction[:3, 3] + rotation @ pivot - pivot
+    q = rotation_to_quaternion(rotation)
+    identity = np.array([1.0, 0.0, 0.0, 0.0])
+    travelled = path_lengths(poses)
+    span = travelled[j] - travelled[i]
+    out = [np.array(p, dtype=np.float64) for p in poses]
+    for k in range(i + 1, len(poses)):
+        f = 1.0  # after the loop: the full correction
+        if k <= j:
+            f = (travelled[k] - travelled[i]) / span if span > 1e-12 else (k - i) / (j - i)
+        r = quaternion_to_rotation(slerp(identity, q, f))
+        partial = make_pose(r, pivot + f * shift - r @ pivot)
+        out[k] = partial @ poses[k]
+    return out

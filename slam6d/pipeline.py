@@ -1,0 +1,512 @@
+"""The whole trajectory: sequential matching, loop closing and global relaxation as one steppable run.
+
+Everything happens in one generator (:meth:`Pipeline._events`) that yields an event after every
+ICP iteration and every stage step. The workbench calls :meth:`Pipeline.step` to advance by one
+event and draws it; :meth:`Pipeline.run` drains the same generator, so the batch command line and
+the interactive workbench can never disagree about what the pipeline does.
+
+Stages (after Nüchter et al.):
+
+1. Sequential registration. Scan i starts from the previous registered pose moved by the odometry
+   increment (or, without odometry, by the previous motion); the octree search refines that start
+   when there is no odometry (``octree_guess="auto"``) or when ICP's fit turns out poor; then ICP
+   against the previous scan (pairwise) or against the union of the recently registered scans
+   (metascan, capped to ``metascan_scans`` so its kd-tree stays small).
+2. Loops. For each scan, earlier scans within a fraction of the laser range but far along the path
+   are loop hypotheses; the best by octree overlap is verified by ICP and, when accepted, its
+   correction is diffused over the loop (:mod:`slam6d.loops`).
+3. Relaxation over the neighbour graph: the seed's simultaneous matching, or LUM-style pose-graph
+   least squares (:mod:`slam6d.relax`).
+
+Each scan is reduced once (one real point per voxel) and its kd-tree is built once; every stage
+reuses them.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from slam6d.errors import RegistrationError, Slam6dError
+from slam6d.geometry import Matrix, invert
+from slam6d.icp import ICPConfig, ICPIteration, ICPResult, ModelIndex, icp_iterations
+from slam6d.initial_guess import GuessResult, OctreeSearchConfig, extrapolate_odometry, octree_guess
+from slam6d.io.frames import FrameType, write_sequence_frames
+from slam6d.loops import (
+    LoopConfig,
+    LoopHypothesis,
+    diffuse_loop_correction,
+    find_loop_hypotheses,
+    loop_correction,
+    verify,
+)
+from slam6d.octree import Occupancy, Octree, reduce_points
+from slam6d.relax import (
+    Cancelled,
+    RelaxationConfig,
+    RelaxationResult,
+    ScanModels,
+    UnionIndex,
+    lum_relaxation,
+    simultaneous_matching,
+)
+from slam6d.scan import ScanSequence
+from slam6d.trace import to_jsonable, write_trace
+
+MATCHING = ("metascan", "pairwise")
+GUESS_MODES = ("auto", "always", "never")
+RELAXATION = ("lum", "simultaneous", "none")
+
+__all__ = [
+    "Cancelled",
+    "Event",
+    "Finished",
+    "IcpIterated",
+    "LoopClosed",
+    "LoopsDetected",
+    "Pipeline",
+    "PipelineConfig",
+    "PipelineReport",
+    "RelaxationProgressed",
+    "ScanRegistered",
+    "ScanStarted",
+    "write_results",
+]
+
+
+@dataclass(frozen=True)
+class PipelineConfig:
+    """Settings of a full run; lengths in metres.
+
+    ``min_fitness`` is the fraction of data points that must find a partner for a sequential match
+    to count as good; below it (or when ICP fails) ``octree_guess="auto"`` searches a new start.
+    ``max_range`` (the laser's reach) bounds loop hypotheses; None estimates it from the scans.
+    """
+
+    voxel_size: float = 0.1
+    matching: str = "metascan"
+    icp: ICPConfig = field(default_factory=ICPConfig)
+    octree_guess: str = "auto"
+    loops: bool = True
+    loop_closing: bool = True
+    relaxation: str = "lum"
+    max_range: float | None = None
+    metascan_scans: int = 8
+    min_fitness: float = 0.3
+    guess: OctreeSearchConfig | None = None
+    loop: LoopConfig = field(default_factory=LoopConfig)
+    relax: RelaxationConfig = field(default_factory=RelaxationConfig)
+
+    def __post_init__(self) -> None:
+        if self.matching not in MATCHING:
+            raise ValueError(f"matching must be one of {MATCHING}, got {self.matching!r}")
+        if self.octree_guess not in GUESS_MODES:
+            raise ValueError(f"octree_guess must be one of {GUESS_MODES}, got {self.octree_guess!r}")
+        if self.relaxation not in RELAXATION:
+            raise ValueError(f"relaxation must be one of {RELAXATION}, got {self.relaxation!r}")
+        if not self.voxel_size >= 0:
+            raise ValueError(f"voxel_size must be >= 0 (0 = no reduction), got {self.voxel_size}")
+        if self.metascan_scans < 1:
+            raise ValueError(f"metascan_scans must be at least 1, got {self.metascan_scans}")
+        if self.max_range is not None and not self.max_range > 0:
+            raise ValueError(f"max_range must be positive, got {self.max_range}")
+
+
+# ---------------------------------------------------------------- events
+
+
+@dataclass
+class ScanStarted:
+    index: int
+    initial: Matrix  # world_from_scan ICP starts from
+    guess: GuessResult | None
+    model_indices: list[int]
+
+
+@dataclass
+class IcpIterated:
+    index: int
+    iteration: ICPIteration
+    pose: Matrix  # world_from_scan after this iteration
+
+
+@dataclass
+class ScanRegistered:
+    index: int
+    pose: Matrix
+    result: ICPResult
+
+
+@dataclass
+class LoopsDetected:
+    hypotheses: list[LoopHypothesis]
+
+
+@dataclass
+class LoopClosed:
+    loop: LoopHypothesis
+    displacement: list[float]  # per scan, metres moved by the error diffusion
+
+
+@dataclass
+class RelaxationProgressed:
+    iteration: int
+    residual: float
+    moved: list[int]
+
+
+@dataclass
+class ScanSummary:
+    index: int
+    name: str
+    points: int
+    reduced_points: int
+    icp_iterations: int = 0
+    rms: float = float("nan")
+    fitness: float = float("nan")
+    converged: bool = False
+    octree_guess: bool = False
+    seconds: float = 0.0
+
+
+@dataclass
+class PipelineReport:
+    scans: int
+    stage_seconds: dict[str, float]
+    loops: list[LoopHypothesis]  # verified hypotheses (accepted or not)
+    loops_closed: list[tuple[int, int]]
+    relaxation: str
+    residual_before: float | None  # RMS closest-point distance over neighbour pairs, metres
+    residual_after: float | None
+    chi2_before: float | None
+    chi2_after: float | None
+    relaxation_iterations: int
+    neighbour_pairs: int
+    max_range: float
+    settings: dict[str, Any]
+    scan_summaries: list[ScanSummary] = field(default_factory=list)
+
+
+@dataclass
+class Finished:
+    report: PipelineReport
+
+
+Event = ScanStarted | IcpIterated | ScanRegistered | LoopsDetected | LoopClosed | RelaxationProgressed | Finished
+
+
+# ---------------------------------------------------------------- the pipeline
+
+
+class Pipeline:
+    """A steppable run over a :class:`ScanSequence`; see the module docstring."""
+
+    def __init__(self, sequence: ScanSequence, config: PipelineConfig = PipelineConfig()) -> None:
+        if len(sequence) == 0:
+            raise Slam6dError("the sequence has no scans")
+        self.sequence = sequence
+        self.config = config
+        self.odometry: list[Matrix] = [scan.pose.copy() for scan in sequence]
+        self.has_odometry = [bool(scan.has_pose) for scan in sequence]
+        self.poses: list[Matrix] = [p.copy() for p in self.odometry]
+        self.history: list[list[tuple[Matrix, int]]] = [[(p.copy(), FrameType.ICP_INACTIVE)] for p in self.poses]
+        self.registered = 1  # scan 0 anchors the map
+        self.done = False
+        self.stage = "reduction"
+        self.stage_seconds: dict[str, float] = {}
+        self.loops: list[LoopHypothesis] = []
+        self.loops_closed: list[tuple[int, int]] = []
+        self.relaxation_result: RelaxationResult | None = None
+        self.report: PipelineReport | None = None
+        self._cancel: Callable[[], bool] | None = None
+        self._icp_config = replace(config.icp, data_voxel_size=0.0)
+        began = time.perf_counter()
+        reduced = [self._reduce(scan.points) for scan in sequence]
+        self.models = ScanModels(reduced, self._icp_config)
+        self.summaries = [
+            ScanSummary(k, scan.name or f"scan{k:03d}", len(scan), len(reduced[k])) for k, scan in enumerate(sequence)
+        ]
+        self._add_time("reduction", time.perf_counter() - began)
+        self._occupancy: dict[int, Occupancy] = {}
+        self._events_gen: Iterator[Event] = self._events()
+
+    # -- public stepping API
+
+    def step(self) -> Event:
+        """Advance by the smallest step (one ICP iteration, one loop, one relaxation round)."""
+        if self.done:
+            raise StopIteration("the pipeline has finished")
+        began = time.perf_counter()
+        event = next(self._events_gen)
+        self._add_time(self.stage, time.perf_counter() - began)  # the stage that produced the event
+        if isinstance(event, Finished):
+            self.done = True
+        return event
+
+    def step_scan(self) -> list[Event]:
+        """Advance until the next scan is registered (or the next stage event once all are)."""
+        events = []
+        while not self.done:
+            event = self.step()
+            events.append(event)
+            if isinstance(event, ScanRegistered | LoopClosed | LoopsDetected | RelaxationProgressed | Finished):
+                break
+        return events
+
+    def run(
+        self,
+        progress: Callable[[str, int, int], None] | None = None,
+        cancel: Callable[[], bool] | None = None,
+    ) -> PipelineReport:
+        """Run to the end; ``progress(stage, done, total)``; raises :class:`Cancelled` when ``cancel()`` turns true."""
+        self._cancel = cancel
+        count = len(self.sequence)
+        while not self.done:
+            if cancel is not None and cancel():
+                raise Cancelled(f"run cancelled during {self.stage}")
+            event = self.step()
+            if progress is None:
+                continue
+            if isinstance(event, ScanRegistered):
+                progress("registration", event.index + 1, count)
+            elif isinstance(event, LoopsDetected) and event.hypotheses:
+                progress("loops", event.hypotheses[0].j + 1, count)
+            elif isinstance(event, RelaxationProgressed):
+                progress("relaxation", event.iteration, max(event.iteration, self.config.relax.max_rounds))
+            elif isinstance(event, Finished):
+                progress("done", count, count)
+        assert self.report is not None
+        return self.report
+
+    # -- helpers
+
+    def _add_time(self, stage: str, seconds: float) -> None:
+        self.stage_seconds[stage] = self.stage_seconds.get(stage, 0.0) + seconds
+
+    def _reduce(self, points: np.ndarray) -> np.ndarray:
+        if self.config.voxel_size <= 0:
+            return points
+        return points[reduce_points(points, self.config.voxel_size)]
+
+    def reduced_points(self, index: int) -> np.ndarray:
+        return self.models.points[index]
+
+    def max_range(self) -> float:
+        """The laser's reach: configured, or the median over scans of each scan's 99th-percentile range."""
+        if self.config.max_range is not None:
+            return float(self.config.max_range)
+        ranges = [np.percentile(np.linalg.norm(p, axis=1), 99) for p in self.models.points]
+        return float(np.median(ranges))
+
+    def _set_pose(self, index: int, pose: Matrix, flag: int) -> None:
+        self.poses[index] = np.array(pose, dtype=np.float64)
+        self.history[index].append((self.poses[index].copy(), flag))
+
+    def _carry_unregistered(self, index: int) -> None:
+        """Scans not registered yet follow the newest registered one by their odometry increments."""
+        anchor = self.poses[index] @ invert(self.odometry[index])
+        for k in range(index + 1, len(self.poses)):
+            self.poses[k] = anchor @ self.odometry[k] if self.has_odometry[k] else self.poses[index].copy()
+
+    # -- the generator
+
+    def _events(self) -> Iterator[Event]:
+        self.stage = "registration"
+        self.history[0].append((self.poses[0].copy(), FrameType.ICP))
+        for index in range(1, len(self.sequence)):
+            yield from self._register(index)
+        if self.config.loops and len(self.sequence) > 2:
+            self.stage = "loops"
+            yield from self._loop_stage()
+        if self.config.relaxation != "none" and len(self.sequence) > 1:
+            self.stage = "relaxation"
+            yield from self._relax_stage()
+        self.stage = "finished"
+        self.report = self._make_report()
+        yield Finished(self.report)
+
+    def _start_pose(self, index: int) -> Matrix:
+        prev = self.poses[index - 1]
+        if self.has_odometry[index] and self.has_odometry[index - 1]:
+            return extrapolate_odometry(self.odometry[index - 1], prev, self.odometry[index])
+        if index >= 2:  # constant velocity: repeat the last motion
+            return prev @ invert(self.poses[index - 2]) @ prev
+        return prev.copy()
+
+    def _model(self, index: int) -> tuple[ModelIndex, Matrix, list[int]]:
+        """Model for scan ``index``: (index, world_from_model, scans in it)."""
+        if self.config.matching == "pairwise":
+            return self.models.index(index - 1), self.poses[index - 1], [index - 1]
+        members = list(range(max(0, index - self.config.metascan_scans), index))
+        return UnionIndex(self.models, members, self.poses), np.eye(4), members
+
+    def _guess(self, index: int, start_world: Matrix) -> GuessResult:
+        """Octree search against the previous scan (own frame); returns the guess in world coordinates."""
+        prev = self.poses[index - 1]
+        result = octree_guess(
+            self.models.points[index - 1], self.models.points[index], invert(prev) @ start_world, self.config.guess
+        )
+        result.transform = prev @ result.transform
+        return result
+
+    def _run_icp(self, index: int, model: ModelIndex, world_from_model: Matrix, start_world: Matrix) -> Iterator[Event]:
+        """Yield one event per ICP iteration; the generator's return value is the ICPResult (or the error)."""
+        data = self.models.points[index]
+        model_from_world = invert(world_from_model)
+        iterations: list[ICPIteration] = []
+        try:
+            for iteration in icp_iterations(model, data, model_from_world @ start_world, self._icp_config):
+                iterations.append(iteration)
+                pose = world_from_model @ iteration.transform
+                self._set_pose(index, pose, FrameType.ICP)
+                yield IcpIterated(index, iteration, pose)
+        except RegistrationError as exc:
+            return exc
+        last = iterations[-1]
+        return ICPResult(
+            transform=world_from_model @ last.transform,
+            iterations=iterations,
+            converged=last.converged,
+            pairs=last.pairs,
+            rms=last.rms,
+            fitness=last.pairs / max(len(data), 1),
+            data_points=len(data),
+            method=self._icp_config.method,
+            max_distance=last.max_distance,
+        )
+
+    def _register(self, index: int) -> Iterator[Event]:
+        began = time.perf_counter()
+        cfg = self.config
+        start = self._start_pose(index)
+        guess = None
+        if cfg.octree_guess == "always" or (cfg.octree_guess == "auto" and not self.has_odometry[index]):
+            guess = self._guess(index, start)
+            start = guess.transform
+        model, world_from_model, members = self._model(index)
+        yield ScanStarted(index, start.copy(), guess, members)
+        outcome = yield from self._run_icp(index, model, world_from_model, start)
+        poor = isinstance(outcome, RegistrationError) or outcome.fitness < cfg.min_fitness
+        if poor and cfg.octree_guess == "auto" and guess is None:
+            guess = self._guess(index, start)
+            yield ScanStarted(index, guess.transform.copy(), guess, members)
+            second = yield from self._run_icp(index, model, world_from_model, guess.transform)
+            if isinstance(outcome, RegistrationError) or (
+                not isinstance(second, RegistrationError) and second.fitness > outcome.fitness
+            ):
+                outcome = second
+        if isinstance(outcome, RegistrationError):
+            name = self.summaries[index].name
+            raise RegistrationError(f"scan {index} ({name}) could not be registered: {outcome}") from outcome
+        self._set_pose(index, outcome.transform, FrameType.ICP)
+        self._carry_unregistered(index)
+        self.registered = index + 1
+        summary = self.summaries[index]
+        summary.icp_iterations = len(outcome.iterations)
+        summary.rms, summary.fitness, summary.converged = outcome.rms, outcome.fitness, outcome.converged
+        summary.octree_guess = guess is not None
+        summary.seconds = time.perf_counter() - began
+        yield ScanRegistered(index, self.poses[index].copy(), outcome)
+
+    def _occupancy_of(self, index: int) -> Occupancy:
+        if index not in self._occupancy:
+            cube = self.config.loop.overlap_cube
+            self._occupancy[index] = Octree(self.models.points[index], cube).occupancy(cube)
+        return self._occupancy[index]
+
+    def _loop_stage(self) -> Iterator[Event]:
+        cfg = self.config.loop
+        max_range = self.max_range()
+        last_tried = -(10**9)
+        for j in range(2, len(self.sequence)):
+            if j - last_tried < cfg.closing_gap:
+                continue
+            if self._cancel is not None and self._cancel():
+                raise Cancelled("run cancelled during loop detection")
+            candidates = find_loop_hypotheses(
+                self.poses[: j + 1], max_range, cfg, self._occupancy_of, self.models.points, last_only=1
+            )
+            tried = []
+            for hyp in candidates:
+                if hyp.reason or len(tried) >= cfg.candidates_per_scan:
+                    break
+                tried.append(verify(hyp, self.models.index(hyp.i), self.models.points[j], self._icp_config, cfg))
+            if not tried:
+                continue
+            last_tried = j
+            self.loops.extend(tried)
+            yield LoopsDetected(tried)
+            accepted = [h for h in tried if h.accepted]
+            if accepted and self.config.loop_closing:
+                loop = accepted[0]
+                before = [p.copy() for p in self.poses]
+                corrected = diffuse_loop_correction(self.poses, loop.i, loop.j, loop_correction(self.poses, loop))
+                displacement = []
+                for k, pose in enumerate(corrected):
+                    moved = float(np.linalg.norm(pose[:3, 3] - before[k][:3, 3]))
+                    displacement.append(moved)
+                    if k > loop.i:
+                        self._set_pose(k, pose, FrameType.ELCH)
+                self.loops_closed.append((loop.i, loop.j))
+                yield LoopClosed(loop, displacement)
+
+    def _relax_stage(self) -> Iterator[Event]:
+        progress: list[RelaxationProgressed] = []
+
+        def record(iteration: int, residual: float, moved: list[int]) -> None:
+            progress.append(RelaxationProgressed(iteration, residual, moved))
+
+        relax = simultaneous_matching if self.config.relaxation == "simultaneous" else lum_relaxation
+        result = relax(
+            self.models, self.poses, fixed=(0,), config=self.config.relax, progress=record, cancel=self._cancel
+        )
+        self.relaxation_result = result
+        flag = FrameType.LUM if self.config.relaxation == "lum" else FrameType.ICP
+        for k, pose in enumerate(result.poses):
+            self._set_pose(k, pose, flag)
+        yield from progress
+        if not progress:
+            yield RelaxationProgressed(result.iterations, result.residual_after, [])
+
+    def _make_report(self) -> PipelineReport:
+        r = self.relaxation_result
+        return PipelineReport(
+            scans=len(self.sequence),
+            stage_seconds=dict(self.stage_seconds),
+            loops=list(self.loops),
+            loops_closed=list(self.loops_closed),
+            relaxation=self.config.relaxation,
+            residual_before=r.residual_before if r else None,
+            residual_after=r.residual_after if r else None,
+            chi2_before=r.chi2_before if r else None,
+            chi2_after=r.chi2_after if r else None,
+            relaxation_iterations=r.iterations if r else 0,
+            neighbour_pairs=len(r.neighbours) if r else 0,
+            max_range=self.max_range(),
+            settings=to_jsonable(self.config),
+            scan_summaries=list(self.summaries),
+        )
+
+
+def write_results(pipeline: Pipeline, out_dir: Path | str, extra: dict[str, Any] | None = None) -> dict[str, Path]:
+    """Write ``poses_kitti.txt`` (input units and frame), one ``.frames`` per scan, and ``report.json``."""
+    from slam6d.io.poses import write_kitti_poses
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    convention = pipeline.sequence.convention
+    poses_path = out / "poses_kitti.txt"
+    write_kitti_poses(poses_path, [convention.pose_to_native(p) for p in pipeline.poses])
+    write_sequence_frames(out, pipeline.history, convention)
+    report = to_jsonable(pipeline.report) if pipeline.report is not None else {}
+    report["convention"] = convention.name
+    if extra:
+        report.update(to_jsonable(extra))
+    report_path = out / "report.json"
+    write_trace(report_path, report)
+    return {"poses": poses_path, "report": report_path}

@@ -1,0 +1,166 @@
+"""Pose-graph least squares, simultaneous matching and LUM relaxation on small synthetic problems."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from slam6d.geometry import invert, make_pose, pose_difference, pose_from_xyzrpy
+from slam6d.icp import ICPConfig
+from slam6d.metrics import absolute_trajectory_error
+from slam6d.posegraph import (
+    PoseEdge,
+    RelaxationError,
+    optimize_pose_graph,
+    point_pair_information,
+    so3_exp,
+    so3_log,
+)
+from slam6d.relax import (
+    RelaxationConfig,
+    ScanModels,
+    carry_forward,
+    lum_relaxation,
+    neighbour_pairs,
+    simultaneous_matching,
+)
+from tests.simulated_loop import simulated_loop
+
+
+def _ring(count: int = 12, radius: float = 10.0) -> list[np.ndarray]:
+    angles = np.linspace(0.0, 2 * np.pi, count, endpoint=False)
+    return [
+        pose_from_xyzrpy(radius * np.cos(a), radius * np.sin(a), 0.1 * np.sin(3 * a), 0.02, -0.01, a + np.pi / 2)
+        for a in angles
+    ]
+
+
+def _noisy(pose: np.ndarray, rng: np.random.Generator, t: float, r: float) -> np.ndarray:
+    return pose @ make_pose(so3_exp(rng.normal(0, r, 3)), rng.normal(0, t, 3))
+
+
+def test_so3_log_inverts_exp_including_near_pi() -> None:
+    rng = np.random.default_rng(0)
+    vectors = rng.normal(size=(200, 3))
+    vectors *= (rng.uniform(0, np.pi - 1e-4, 200) / np.linalg.norm(vectors, axis=1))[:, None]
+    vectors[0] = [np.pi - 1e-7, 0.0, 0.0]
+    vectors[1] = [0.0, 0.0, 1e-10]
+    back = so3_log(so3_exp(vectors))
+    np.testing.assert_allclose(so3_exp(back), so3_exp(vectors), atol=1e-7)  # near pi the axis is only ~sqrt(eps) exact
+    np.testing.assert_allclose(back[2:], vectors[2:], atol=1e-6)
+
+
+def test_consistent_loop_graph_recovers_the_truth_from_drifted_start() -> None:
+    truth = _ring()
+    edges = [PoseEdge(k, (k + 1) % 12, invert(truth[k]) @ truth[(k + 1) % 12]) for k in range(12)]
+    edges.append(PoseEdge(0, 6, invert(truth[0]) @ truth[6]))
+    rng = np.random.default_rng(1)
+    start = [truth[0]] + [_noisy(p, rng, 0.5, 0.1) for p in truth[1:]]
+    result = optimize_pose_graph(start, edges, fixed=[0])
+    assert result.converged
+    assert result.residual_after < 1e-12 < result.residual_before
+    for got, want in zip(result.poses, truth, strict=True):
+        dt, dr = pose_difference(got, want)
+        assert dt < 1e-6 and dr < 1e-6
+
+
+def test_loop_edge_spreads_odometry_drift_and_matches_weighted_optimum() -> None:
+    """Chained noisy odometry plus one accurate loop edge: the error at the loop end shrinks a lot."""
+    truth = _ring(30, 20.0)
+    rng = np.random.default_rng(2)
+    odo_info = np.diag([1 / 0.05**2] * 3 + [1 / 0.01**2] * 3)
+    edges = [PoseEdge(k, k + 1, _noisy(invert(truth[k]) @ truth[k + 1], rng, 0.05, 0.01), odo_info) for k in range(29)]
+    loop = PoseEdge(0, 29, invert(truth[0]) @ truth[29], np.eye(6) * 1e6)
+    chained = [truth[0]]
+    for edge in edges:
+        chained.append(chained[-1] @ edge.measurement)
+    result = optimize_pose_graph(chained, [*edges, loop], fixed=[0])
+    before = absolute_trajectory_error(chained, truth, align=False).rmse
+    after = absolute_trajectory_error(result.poses, truth, align=False).rmse
+    assert pose_difference(result.poses[29], truth[29])[0] < 0.01
+    assert after < 0.5 * before
+    # at the optimum the gradient vanishes: a second solve from the result does not move
+    again = optimize_pose_graph(result.poses, [*edges, loop], fixed=[0])
+    assert again.residual_after == pytest.approx(result.residual_after, rel=1e-6)
+
+
+def test_disconnected_graph_fails_naming_the_loose_scans() -> None:
+    truth = _ring(6)
+    edges = [PoseEdge(0, 1, invert(truth[0]) @ truth[1]), PoseEdge(3, 4, invert(truth[3]) @ truth[4])]
+    with pytest.raises(RelaxationError, match=r"disconnected: 4 scan\(s\) \(2, 3, 4, 5\)"):
+        optimize_pose_graph(truth, edges, fixed=[0])
+    with pytest.raises(RelaxationError, match="no edges"):
+        optimize_pose_graph(truth, [], fixed=[0])
+    with pytest.raises(RelaxationError, match="missing scan"):
+        optimize_pose_graph(truth, [PoseEdge(0, 9, np.eye(4))], fixed=[0])
+
+
+def test_degenerate_information_is_reported_as_solver_failure() -> None:
+    truth = _ring(3)
+    flat = np.diag([1.0, 1.0, 0.0, 1.0, 1.0, 1.0])  # nothing constrains z
+    edges = [PoseEdge(0, 1, invert(truth[0]) @ truth[1], flat), PoseEdge(1, 2, invert(truth[1]) @ truth[2], flat)]
+    with pytest.raises(RelaxationError, match=r"singular|non-finite"):
+        optimize_pose_graph(truth, edges, fixed=[0])
+
+
+def test_point_pair_information_sees_the_free_direction_of_a_plane() -> None:
+    rng = np.random.default_rng(3)
+    plane = np.column_stack([rng.uniform(-5, 5, 500), rng.uniform(-5, 5, 500), np.zeros(500)])
+    info = point_pair_information(plane, np.eye(4), 0.01**2)
+    assert np.allclose(info, info.T)
+    assert np.linalg.eigvalsh(info).min() > -1e-6
+    # point-to-point pairs constrain all translations equally, rotation about z less than tilts
+    assert info[0, 0] == pytest.approx(500 / 0.01**2)
+    assert info[5, 5] > 0 and info[3, 3] < 2 * info[5, 5]
+
+
+def test_carry_forward_keeps_unrelaxed_scans_attached() -> None:
+    before = _ring(5)
+    shift = make_pose(so3_exp(np.array([0, 0, 0.1])), [1.0, 0, 0])
+    after = [p.copy() for p in before]
+    after[2] = shift @ before[2]
+    out = carry_forward(before, after, relaxed=[0, 1, 2])
+    for k in (3, 4):
+        np.testing.assert_allclose(out[k], shift @ before[k], atol=1e-12)
+    np.testing.assert_allclose(out[1], before[1])
+
+
+@pytest.fixture(scope="module")
+def loop_scans():  # type: ignore[no-untyped-def]
+    sim = simulated_loop(scans=10, points=30000, seed=4, loop_length=16.0, loop_width=10.0)
+    config = ICPConfig(max_distance=0.3, max_iterations=30)
+    from slam6d.octree import reduce_points
+
+    points = [s.points[reduce_points(s.points, 0.1)] for s in sim.sequence]
+    return sim, ScanModels(points, config)
+
+
+def _perturbed(truth: list[np.ndarray], seed: int) -> list[np.ndarray]:
+    rng = np.random.default_rng(seed)
+    return [truth[0]] + [_noisy(p, rng, 0.05, np.radians(0.5)) for p in truth[1:]]
+
+
+@pytest.mark.parametrize(("method", "tolerance"), [("simultaneous", 0.025), ("lum", 0.012)])
+def test_relaxation_pulls_perturbed_scans_back_to_the_truth(loop_scans, method: str, tolerance: float) -> None:  # type: ignore[no-untyped-def]
+    sim, models = loop_scans
+    start = _perturbed(sim.truth, 5)
+    relax = simultaneous_matching if method == "simultaneous" else lum_relaxation
+    result = relax(models, start, fixed=[0], config=RelaxationConfig())
+    before = absolute_trajectory_error(start, sim.truth, align=False).rmse
+    after = absolute_trajectory_error(result.poses, sim.truth, align=False).rmse
+    assert before > 0.04
+    assert after < tolerance, (before, after)
+    assert result.residual_after < result.residual_before
+    np.testing.assert_allclose(result.poses[0], sim.truth[0])  # the first scan is fixed
+
+
+def test_neighbours_need_overlap(loop_scans) -> None:  # type: ignore[no-untyped-def]
+    sim, models = loop_scans
+    pairs = neighbour_pairs(models, sim.truth, min_pairs=250)
+    linked = {(p.i, p.j) for p in pairs}
+    assert all((k, k + 1) in linked for k in range(9))
+    moved = [p.copy() for p in sim.truth]
+    moved[5] = make_pose(np.eye(3), [500.0, 0, 0]) @ moved[5]
+    assert not any(5 in (p.i, p.j) for p in neighbour_pairs(models, moved, min_pairs=250))
+    with pytest.raises(RelaxationError, match=r"disconnected.*5"):
+        lum_relaxation(models, moved, fixed=[0])
