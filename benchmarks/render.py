@@ -24,7 +24,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from slam6d.camera_path import CameraPath, Keyframe  # noqa: E402
+from slam6d.camera_path import CameraPath, Keyframe, trajectory_path  # noqa: E402
 from slam6d.render import Camera, PointScene, Renderer, RenderOptions, point_colors, render_frames, scene_from_points  # noqa: E402
 
 
@@ -91,9 +91,11 @@ def measure(render_one, cameras: list[Camera], passes: int) -> tuple[float, floa
     return max(rates), statistics.median(rates)
 
 
-def bench(scene: PointScene, label: str, width: int, height: int, frames: int, passes: int, baseline: bool) -> None:
+def bench(
+    scene: PointScene, label: str, width: int, height: int, frames: int, passes: int, baseline: bool, path: CameraPath
+) -> None:
     renderer = Renderer(scene, width, height, RenderOptions())
-    cameras = [renderer.camera(pose, fov) for pose, fov in hall_path(scene).sample(frames=frames)]
+    cameras = [renderer.camera(pose, fov) for pose, fov in path.sample(frames=frames)]
     image = np.empty((height, width, 3), dtype=np.uint8)
     best, median = measure(lambda cam: renderer.render(cam, image), cameras, passes)
     covered = float((renderer.index >= 0).mean())
@@ -129,8 +131,8 @@ def main() -> None:
     hall2m, hall1m = synthetic_hall(2_000_000), synthetic_hall(1_000_000)
     Renderer(hall1m, 8, 8).render(Camera.from_fov(np.eye(4), 8, 8))
     print(numba.threading_layer())
-    bench(hall2m, "synthetic hall", 1280, 720, args.frames, args.passes, baseline=True)
-    bench(hall1m, "synthetic hall", 640, 480, args.frames, args.passes, baseline=True)
+    bench(hall2m, "synthetic hall", 1280, 720, args.frames, args.passes, True, hall_path(hall2m))
+    bench(hall1m, "synthetic hall", 640, 480, args.frames, args.passes, True, hall_path(hall1m))
     if args.balm:
         from slam6d.render import load_render_input
 
@@ -138,7 +140,8 @@ def main() -> None:
         scene, _ = load_render_input(
             data / "velodyne_style_bin", poses_file=data / "poses_subset_kitti3x4.txt", max_points=2_000_000
         )
-        bench(scene, "BALM hall (real, 89 scans)", 1280, 720, args.frames, args.passes, baseline=False)
+        path = trajectory_path(scene.scan_poses)  # the default fly-through path of `slam6d render`
+        bench(scene, "BALM hall (real, 89 scans)", 1280, 720, args.frames, args.passes, False, path)
     if args.video:
         bench_video(hall2m, 1280, 720, 150)
 
