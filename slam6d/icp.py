@@ -48,25 +48,32 @@ _CYCLE = 4  # the convergence test compares with the previous pose and the three
 
 @dataclass(frozen=True)
 class ICPConfig:
-    """How a pair is registered. Distances in metres.
+    """How a pair is registered. Distances in metres; the defaults suit robot scans of rooms,
+    buildings and streets (scale them down for small objects such as the Stanford bunny).
 
     ``data_voxel_size`` > 0 reduces the data scan to one real point per voxel before matching (the
-    model keeps full resolution, so accuracy is kept while the per-iteration search shrinks);
-    0 matches every data point. ``normal_neighbours`` is the k used for model normals, taken from the
-    model reduced to ``normal_voxel_size`` voxels (see :class:`ModelIndex`). ``threads``
-    bounds the worker threads of the search and the numba kernels.
+    model keeps full resolution, so accuracy is kept while the per-iteration search shrinks; 10 cm is
+    3DTK's usual ``-r 10``); 0 matches every data point. ``normal_neighbours`` is the k used for model
+    normals, taken from the model reduced to ``normal_voxel_size`` voxels (see :class:`ModelIndex`).
+    ``threads`` bounds the worker threads of the search and the numba kernels.
+
+    ``epsilon`` (see the module docstring for the exact rule) defaults to 0.1 mm / 0.006°: on real
+    scans the update does not shrink below that, because single pairs keep entering and leaving the
+    max distance, and iterating on changes nothing measurable. Point-to-point converges linearly: its
+    updates shrink slowly while it still creeps towards the optimum, so give it 1e-5 or less (on the
+    BALM pair 1e-4 stops it 0.1° short, 1e-5 within 0.07° of the reference).
     """
 
     max_distance: float = 0.25
     max_iterations: int = 50
-    epsilon: float = 1e-6
+    epsilon: float = 1e-4
     method: str = "point_to_plane"
     distance_schedule: tuple[float, ...] = ()
     stage_epsilon: float = 1e-4
     min_pairs: int = 20
     normal_neighbours: int = 12
     normal_voxel_size: float = 0.05
-    data_voxel_size: float = 0.0
+    data_voxel_size: float = 0.1
     threads: int = 2
     nn_backend: str = nn.DEFAULT_BACKEND
 

@@ -105,7 +105,7 @@ def test_far_outliers_are_rejected_by_the_max_distance(method: str, model_index:
     config = ICPConfig(method=method, distance_schedule=(1.0, 0.5), max_iterations=200)
     clean = icp(model_index, data, np.eye(4), config)
     dirty = icp(model_index, np.vstack([data, outliers]), np.eye(4), config)
-    assert_pose_close(dirty.transform, clean.transform, 1e-9, 1e-7)
+    assert_pose_close(dirty.transform, clean.transform, 1e-9, 1e-5)
     assert dirty.pairs == clean.pairs
     # without the bound the same outliers drag the result far away (the bound is what protects it)
     unbounded = icp(model_index, np.vstack([data, outliers]), np.eye(4), ICPConfig(method=method, max_distance=50.0))
@@ -256,7 +256,9 @@ def test_balm_consecutive_pair_matches_reference(method: str, shared_data: Path)
     data = read_kitti_bin(hall / "velodyne_style_bin" / "000021.bin").points
     reference = invert(poses[20]) @ poses[21]
     start = reference @ pose_from_xyzrpy(0.2, -0.2, 0.1, np.radians(2.0), np.radians(-2.0), np.radians(4.0))
-    config = ICPConfig(method=method, data_voxel_size=0.1, max_iterations=100)
+    # point-to-point creeps towards the optimum (linear convergence), so it needs a finer epsilon
+    epsilon = 1e-5 if method == "point_to_point" else ICPConfig.epsilon
+    config = ICPConfig(method=method, data_voxel_size=0.1, epsilon=epsilon, max_iterations=100)
     result = icp(model, data, start, config)
     assert result.converged
     assert_pose_close(result.transform, reference, 0.01, 0.1)
