@@ -73,7 +73,7 @@ class LoopConfig:
     min_path_factor: float = 3.0
     min_index_gap: int = 5
     overlap_cube: float = 0.5
-    min_overlap: float = 0.3
+    min_overlap: float = 0.2
     min_fitness: float = 0.3
     max_rms: float = 0.15
     candidates_per_scan: int = 1

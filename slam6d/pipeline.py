@@ -85,10 +85,13 @@ class PipelineConfig:
 
     ``min_fitness`` is the fraction of data points that must find a partner for a sequential match
     to count as good; below it (or when ICP fails) ``octree_guess="auto"`` searches a new start.
+    ``data_voxel_size`` thins the scan being registered (one real point per voxel) while the model
+    keeps ``voxel_size``: matching cost follows the data points, accuracy mostly the model's density.
     ``max_range`` (the laser's reach) bounds loop hypotheses; None estimates it from the scans.
     """
 
     voxel_size: float = 0.1
+    data_voxel_size: float = 0.2  # the scan being matched is thinned further; models keep voxel_size
     matching: str = "metascan"
     icp: ICPConfig = field(default_factory=ICPConfig)
     octree_guess: str = "auto"
@@ -232,6 +235,7 @@ class Pipeline:
             ScanSummary(k, scan.name or f"scan{k:03d}", len(scan), len(reduced[k])) for k, scan in enumerate(sequence)
         ]
         self._add_time("reduction", time.perf_counter() - began)
+        self._data: dict[int, np.ndarray] = {}
         self._occupancy: dict[int, Occupancy] = {}
         self._events_gen: Iterator[Event] = self._events()
 
@@ -296,6 +300,13 @@ class Pipeline:
     def reduced_points(self, index: int) -> np.ndarray:
         return self.models.points[index]
 
+    def _data_points(self, index: int) -> np.ndarray:
+        if index not in self._data:
+            points = self.models.points[index]
+            size = self.config.data_voxel_size
+            self._data[index] = points[reduce_points(points, size)] if size > self.config.voxel_size else points
+        return self._data[index]
+
     def max_range(self) -> float:
         """The laser's reach: configured, or the median over scans of each scan's 99th-percentile range."""
         if self.config.max_range is not None:
@@ -356,7 +367,7 @@ class Pipeline:
 
     def _run_icp(self, index: int, model: ModelIndex, world_from_model: Matrix, start_world: Matrix) -> Iterator[Event]:
         """Yield one event per ICP iteration; the generator's return value is the ICPResult (or the error)."""
-        data = self.models.points[index]
+        data = self._data_points(index)
         model_from_world = invert(world_from_model)
         iterations: list[ICPIteration] = []
         try:

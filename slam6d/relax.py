@@ -66,9 +66,9 @@ class Cancelled(Slam6dError):  # noqa: N818 - reads as "the run was cancelled"
 class RelaxationConfig:
     min_pairs: int = 250  # the seed's neighbour criterion
     move_threshold: float = 0.005  # metres: re-queue neighbours when a scan moves more (simultaneous matching)
-    max_rounds: int = 20  # queue pops per scan (simultaneous) / re-matching rounds (LUM)
+    max_rounds: int = 10  # queue pops per scan (simultaneous) / re-matching rounds (LUM)
     lum_icp_iterations: int = 8
-    max_neighbours: int = 12  # strongest neighbours kept per scan for LUM edges
+    max_neighbours: int = 6  # strongest neighbours kept per scan for LUM edges
     edge_points: int = 4000  # data points per edge ICP (evenly thinned), keeps large graphs affordable
     tolerance: float = 0.0005  # metres: stop LUM rounds when no scan moves more
 

@@ -25,12 +25,16 @@ class SimulatedLoop:
     odometry: list[Matrix]
 
 
-def simulated_loop(scans: int = 12, points: int = 8000, seed: int = 3, **overrides: float) -> SimulatedLoop:
+def simulated_loop(
+    scans: int = 12, points: int = 8000, seed: int = 3, first: int | None = None, **overrides: float
+) -> SimulatedLoop:
+    """``first`` keeps only the first scans of the loop (the path still has ``scans`` stops)."""
     config = SimulationConfig(seed=seed, scans=scans, points_per_scan=points, **overrides)  # type: ignore[arg-type]
     rng = np.random.default_rng(config.seed)
     scene = build_scene(config, rng)
     truth = ground_truth_poses(config, scene)
     odometry = drifting_odometry(config, truth, rng)
+    truth, odometry = truth[:first], odometry[:first]
     directions = scan_pattern(config)
     clouds = [simulate_scan(config, scene, pose, directions, rng) for pose in truth]
     sequence = ScanSequence(

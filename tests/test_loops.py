@@ -1,0 +1,93 @@
+"""Loop hypotheses, verification and error diffusion."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from slam6d.geometry import invert, make_pose, pose_difference, pose_from_xyzrpy, rotation_angle
+from slam6d.icp import ICPConfig, ModelIndex
+from slam6d.loops import (
+    LoopConfig,
+    LoopHypothesis,
+    diffuse_loop_correction,
+    find_loop_hypotheses,
+    loop_correction,
+    octree_overlap,
+    path_lengths,
+    verify,
+)
+from slam6d.octree import Octree, reduce_points
+from slam6d.posegraph import so3_exp
+from tests.simulated_loop import simulated_loop
+
+
+def _ring(count: int, radius: float) -> list[np.ndarray]:
+    angles = np.linspace(0.0, 2 * np.pi, count, endpoint=False)
+    return [pose_from_xyzrpy(radius * np.cos(a), radius * np.sin(a), 0.0, 0.0, 0.0, a + np.pi / 2) for a in angles]
+
+
+def test_hypotheses_come_from_poses_near_in_space_far_along_the_path() -> None:
+    poses = _ring(20, 10.0)  # neighbours ~3.1 m apart, 63 m around
+    found = find_loop_hypotheses(poses, max_range=30.0, config=LoopConfig(radius_fraction=0.25))
+    pairs = {(h.i, h.j) for h in found}
+    assert (0, 19) in pairs and (0, 18) in pairs
+    assert all(h.j - h.i >= LoopConfig().min_index_gap for h in found)
+    assert all(h.distance <= 7.5 and h.path_length >= 3 * h.distance for h in found)
+    assert not find_loop_hypotheses(poses[:10], max_range=30.0)  # half a ring closes nothing
+    assert {(h.i, h.j) for h in find_loop_hypotheses(poses, 30.0, last_only=1)} <= {(i, 19) for i in range(19)}
+
+
+def test_diffusion_moves_scan_j_fully_and_earlier_scans_by_path_fraction() -> None:
+    poses = _ring(12, 10.0)
+    correction = make_pose(so3_exp(np.array([0.0, 0.0, 0.2])), np.array([0.5, -0.3, 0.1]))
+    out = diffuse_loop_correction(poses, 2, 8, correction)
+    for k in (0, 1, 2):
+        np.testing.assert_allclose(out[k], poses[k])
+    np.testing.assert_allclose(out[8], correction @ poses[8], atol=1e-12)
+    for k in (9, 10, 11):  # after the loop: rigidly attached, so the trajectory stays continuous
+        np.testing.assert_allclose(out[k], correction @ poses[k], atol=1e-12)
+    travelled = path_lengths(poses)
+    for k in range(3, 8):
+        f = (travelled[k] - travelled[2]) / (travelled[8] - travelled[2])
+        applied = out[k] @ invert(poses[k])
+        assert rotation_angle(applied[:3, :3]) == pytest.approx(0.2 * f, abs=1e-9)
+    # consecutive relative motions change smoothly: no jump anywhere
+    steps = [pose_difference(invert(out[k]) @ out[k + 1], invert(poses[k]) @ poses[k + 1])[0] for k in range(11)]
+    moved_j = float(np.linalg.norm(out[8][:3, 3] - poses[8][:3, 3]))
+    assert max(steps) < 1.5 * moved_j / 6
+
+
+def test_diffusion_rejects_bad_indices() -> None:
+    with pytest.raises(ValueError, match="loop"):
+        diffuse_loop_correction(_ring(5, 3.0), 3, 2, np.eye(4))
+
+
+@pytest.fixture(scope="module")
+def loop_scene():  # type: ignore[no-untyped-def]
+    sim = simulated_loop(scans=10, points=20000, seed=7, loop_length=16.0, loop_width=10.0)
+    points = [s.points[reduce_points(s.points, 0.1)] for s in sim.sequence]
+    return sim, points
+
+
+def test_verify_accepts_the_true_loop_from_a_drifted_start_and_rejects_a_wrong_one(loop_scene) -> None:  # type: ignore[no-untyped-def]
+    sim, points = loop_scene
+    truth = sim.truth
+    drift = make_pose(so3_exp(np.array([0.0, 0.0, np.radians(2.0)])), np.array([0.35, -0.25, 0.05]))
+    drifted = [p.copy() for p in truth]
+    drifted[9] = drift @ truth[9]
+    hyp = find_loop_hypotheses(drifted, 30.0, LoopConfig(min_path=5.0), last_only=1)
+    loop = next(h for h in hyp if h.i == 0)
+    occupancy = Octree(points[0], 0.5).occupancy(0.5)
+    loop.overlap = octree_overlap(occupancy, points[9], loop.transform)
+    assert loop.overlap >= LoopConfig().min_overlap
+    verdict = verify(loop, ModelIndex(points[0]), points[9], ICPConfig())
+    assert verdict.accepted, verdict.reason
+    fixed = diffuse_loop_correction(drifted, 0, 9, loop_correction(drifted, verdict))
+    dt, dr = pose_difference(fixed[9], truth[9])
+    assert dt < 0.03 and np.degrees(dr) < 0.3
+    # scan 4 lies across the block: placed where scan 9 is, ICP cannot make it fit
+    wrong = LoopHypothesis(0, 4, 0.0, 20.0, transform=invert(truth[0]) @ truth[9])
+    assert not verify(wrong, ModelIndex(points[0]), points[4], ICPConfig()).accepted
+    far = octree_overlap(occupancy, points[9], make_pose(np.eye(3), [200.0, 0.0, 0.0]))
+    assert far == 0.0

@@ -1,0 +1,165 @@
+"""The steppable pipeline and `slam6d run` on small simulated loops (fast) and real data (slow)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from slam6d.errors import RegistrationError
+from slam6d.geometry import UOS, pose_difference
+from slam6d.io.frames import read_frames
+from slam6d.io.poses import read_kitti_poses
+from slam6d.metrics import absolute_trajectory_error
+from slam6d.pipeline import (
+    Cancelled,
+    Finished,
+    IcpIterated,
+    LoopClosed,
+    Pipeline,
+    PipelineConfig,
+    RelaxationProgressed,
+    ScanRegistered,
+    ScanStarted,
+    write_results,
+)
+from slam6d.scan import Scan, ScanSequence
+from tests.simulated_loop import simulated_loop
+
+SMALL = {"scans": 8, "points": 20000, "seed": 1, "loop_length": 16.0, "loop_width": 10.0}
+
+
+@pytest.fixture(scope="module")
+def small_loop():  # type: ignore[no-untyped-def]
+    return simulated_loop(**SMALL)
+
+
+def _fresh(sim) -> ScanSequence:  # type: ignore[no-untyped-def]
+    return ScanSequence([Scan(s.points, s.pose.copy(), s.name, has_pose=s.has_pose) for s in sim.sequence])
+
+
+def test_full_run_beats_odometry_and_closes_the_loop(small_loop) -> None:  # type: ignore[no-untyped-def]
+    pipeline = Pipeline(_fresh(small_loop), PipelineConfig())
+    report = pipeline.run()
+    odometry = absolute_trajectory_error(small_loop.odometry, small_loop.truth).rmse
+    ate = absolute_trajectory_error(pipeline.poses, small_loop.truth).rmse
+    assert odometry > 0.1
+    assert ate < 0.02, ate
+    assert report.loops_closed and report.loops_closed[0][1] == 7
+    assert report.chi2_after is not None and report.chi2_before is not None and report.chi2_after <= report.chi2_before
+    assert set(report.stage_seconds) >= {"registration", "loops", "relaxation"}
+    assert pipeline.done
+
+
+def test_step_yields_one_icp_iteration_at_a_time_and_matches_run(small_loop) -> None:  # type: ignore[no-untyped-def]
+    config = PipelineConfig(loops=False, relaxation="none")
+    stepped = Pipeline(_fresh(small_loop), config)
+    first = stepped.step()
+    assert isinstance(first, ScanStarted) and first.index == 1
+    second = stepped.step()
+    assert isinstance(second, IcpIterated) and second.iteration.index == 0
+    np.testing.assert_allclose(stepped.poses[1], second.pose)
+    events = stepped.step_scan()
+    assert isinstance(events[-1], ScanRegistered) and events[-1].index == 1
+    assert all(isinstance(e, IcpIterated) for e in events[:-1])
+    while not stepped.done:
+        stepped.step()
+    batch = Pipeline(_fresh(small_loop), config)
+    batch.run()
+    for a, b in zip(stepped.poses, batch.poses, strict=True):
+        np.testing.assert_allclose(a, b, atol=1e-12)
+    with pytest.raises(StopIteration):
+        stepped.step()
+
+
+def test_events_cover_loops_and_relaxation(small_loop) -> None:  # type: ignore[no-untyped-def]
+    pipeline = Pipeline(_fresh(small_loop), PipelineConfig(relaxation="simultaneous"))
+    kinds = []
+    while not pipeline.done:
+        kinds.append(type(pipeline.step()))
+    assert kinds.count(ScanRegistered) == 7
+    assert LoopClosed in kinds and RelaxationProgressed in kinds and kinds[-1] is Finished
+    history = pipeline.history[5]
+    flags = [int(flag) for _, flag in history]
+    assert flags[0] == 2 and 1 in flags and 4 in flags  # inactive start, ICP iterations, ELCH
+
+
+def test_cancel_stops_the_run(small_loop) -> None:  # type: ignore[no-untyped-def]
+    pipeline = Pipeline(_fresh(small_loop), PipelineConfig())
+    calls = []
+
+    def cancel() -> bool:
+        calls.append(1)
+        return len(calls) > 5
+
+    with pytest.raises(Cancelled):
+        pipeline.run(cancel=cancel)
+    assert not pipeline.done
+
+
+def test_pairwise_without_odometry_uses_the_octree_guess() -> None:
+    dense = simulated_loop(scans=48, points=20000, seed=5, first=4)  # about 1 m and 10 degrees between scans
+    scans = [Scan(s.points, np.eye(4), s.name, has_pose=False) for s in dense.sequence.scans]
+    truth = dense.truth
+    pipeline = Pipeline(ScanSequence(scans), PipelineConfig(matching="pairwise", loops=False, relaxation="none"))
+    report = pipeline.run()
+    assert all(s.octree_guess for s in report.scan_summaries[1:])
+    for k in range(1, 4):
+        expected = np.linalg.inv(truth[0]) @ truth[k]
+        dt, dr = pose_difference(pipeline.poses[k], expected)
+        assert dt < 0.05 and np.degrees(dr) < 0.5, (k, dt, np.degrees(dr))
+
+
+def test_unmatchable_scan_fails_naming_it() -> None:
+    rng = np.random.default_rng(0)
+    box = rng.uniform(-5, 5, (3000, 3))
+    far = rng.uniform(-5, 5, (3000, 3)) + 1000.0
+    seq = ScanSequence([Scan(box, has_pose=True), Scan(far, name="lonely", has_pose=True)])
+    with pytest.raises(RegistrationError, match=r"scan 1 \(lonely\)"):
+        Pipeline(seq, PipelineConfig(octree_guess="never", loops=False, relaxation="none")).run()
+
+
+def test_config_rejects_unknown_names() -> None:
+    with pytest.raises(ValueError, match="matching"):
+        PipelineConfig(matching="global")
+    with pytest.raises(ValueError, match="relaxation"):
+        PipelineConfig(relaxation="gtsam")
+
+
+def test_results_are_written_in_the_inputs_units_and_frame(small_loop, tmp_path) -> None:  # type: ignore[no-untyped-def]
+    seq = _fresh(small_loop)
+    seq.convention = UOS
+    pipeline = Pipeline(seq, PipelineConfig(loops=False, relaxation="none"))
+    pipeline.run()
+    write_results(pipeline, tmp_path)
+    native = read_kitti_poses(tmp_path / "poses_kitti.txt")
+    assert len(native) == 8
+    for got, pose in zip(native, pipeline.poses, strict=True):
+        np.testing.assert_allclose(UOS.pose_to_canonical(got), pose, atol=1e-6)
+    frames = read_frames(tmp_path / "scan003.frames")
+    np.testing.assert_allclose(frames[-1][0], UOS.pose_to_native(pipeline.poses[3]), atol=1e-4)
+    report = json.loads((tmp_path / "report.json").read_text())
+    assert report["scans"] == 8 and report["settings"]["matching"] == "metascan" and report["convention"] == "uos"
+
+
+def test_cli_run_writes_poses_frames_and_report(tmp_path) -> None:
+    from typer.testing import CliRunner
+
+    from slam6d.cli import app
+    from slam6d.simulate import SimulationConfig, simulate_session
+
+    session = simulate_session(
+        tmp_path / "in", SimulationConfig(seed=2, scans=6, points_per_scan=15000, loop_length=16.0, loop_width=10.0)
+    )
+    result = CliRunner().invoke(
+        app, ["run", str(tmp_path / "in"), "--format", "uos", "--out", str(tmp_path / "out"), "--relaxation", "lum"]
+    )
+    assert result.exit_code == 0, result.output
+    assert "6 scans registered" in result.output
+    estimate = read_kitti_poses(tmp_path / "out" / "poses_kitti.txt")
+    truth = read_kitti_poses(session.ground_truth_file)
+    assert absolute_trajectory_error(estimate, truth).rmse < 2.0  # centimetres: uos units
+    assert len(list((tmp_path / "out").glob("scan*.frames"))) == 6
+    report = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert report["relaxation"] == "lum" and "registration" in report["stage_seconds"]
