@@ -89,7 +89,8 @@ class OctreeSearchConfig:
     translation_range: tuple[float, float, float] = (1.6, 1.6, 0.8)
     yaw_range: float = math.radians(36.0)
     tilt_range: float = math.radians(6.0)
-    refine_steps: int = 1
+    refine_translation_steps: int = 2
+    refine_rotation_steps: int = 1
     max_angle_step: float = math.radians(6.0)
     lever_percentile: float = 75.0
     max_points: int = 3000
@@ -105,8 +106,8 @@ class OctreeSearchConfig:
             raise ValueError(f"translation_range must be three non-negative lengths, got {self.translation_range}")
         if self.yaw_range < 0 or self.tilt_range < 0:
             raise ValueError("yaw_range and tilt_range must not be negative")
-        if self.refine_steps < 0:
-            raise ValueError(f"refine_steps must be >= 0, got {self.refine_steps}")
+        if self.refine_translation_steps < 0 or self.refine_rotation_steps < 0:
+            raise ValueError("refine_translation_steps and refine_rotation_steps must be >= 0")
         if not self.max_angle_step > 0:
             raise ValueError(f"max_angle_step must be positive, got {self.max_angle_step}")
         if not 0 < self.lever_percentile <= 100:
@@ -308,11 +309,12 @@ def _search_level(
         roll_range = pitch_range = config.tilt_range
         yaw_range = config.yaw_range
     else:
-        # refine_steps of this level's own steps each way (an axis the coarsest level did not search stays fixed)
+        # a few of this level's own steps each way (an axis the coarsest level did not search stays fixed)
         own = (cube_size, cube_size, cube_size, angle_step, angle_step, angle_step)
+        counts = (config.refine_translation_steps,) * 3 + (config.refine_rotation_steps,) * 3
         ranges = [
-            config.refine_steps * step if len(axis) > 1 else 0.0
-            for axis, step in zip(previous.candidates.axes, own, strict=True)
+            count * step if len(axis) > 1 else 0.0
+            for axis, step, count in zip(previous.candidates.axes, own, counts, strict=True)
         ]
         trans_ranges = (ranges[0], ranges[1], ranges[2])
         roll_range, pitch_range, yaw_range = ranges[3:]
