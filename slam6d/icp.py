@@ -4,8 +4,8 @@ Two error metrics are offered. ``point_to_point`` is the paper's: the closed-for
 rotation from the SVD of the cross-covariance of the paired points (Arun, Huang and Blostein 1987).
 It is robust but converges linearly, so near the optimum it needs many iterations. ``point_to_plane``
 minimises the distance of each data point to the tangent plane of its model partner (normals from
-the model's k nearest neighbours, computed once per :class:`ModelIndex`), linearised for small
-rotations; it slides along walls and floors instead of being held back by the sampling of the model,
+the model's k nearest neighbours, estimated on demand and cached in the :class:`ModelIndex`),
+linearised for small rotations; it slides along walls and floors instead of being held back by the sampling of the model,
 and converges in a few iterations. It is the default because it wins ``benchmarks/pair.py`` on both
 time and accuracy.
 
@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import itertools
 import math
+import threading
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 
@@ -276,6 +277,8 @@ class ModelIndex:
     ``normal_voxel_size`` voxel. Scanners sample densely along each scan line and sparsely across
     lines, so the k nearest raw points of a point mostly lie on its own line and give no plane; on
     the reduced copy they spread across lines. 0 uses the raw points.
+
+    One index may serve registrations running in several threads: filling the normal cache is locked.
     """
 
     def __init__(
@@ -300,6 +303,7 @@ class ModelIndex:
         self._normal_source: nn.NeighbourIndex | None = None
         self._normals = np.zeros((len(points), 3))
         self._normal_state = np.zeros(len(points), dtype=np.int8)  # 0 unknown, 1 usable, 2 unusable
+        self._normal_lock = threading.Lock()
 
     def __len__(self) -> int:
         return len(self.points)
@@ -310,7 +314,12 @@ class ModelIndex:
     def normals_for(self, indices: IndexArray) -> tuple[FloatArray, NDArray[np.bool_]]:
         """Normals of the given model points and whether each is usable (estimated on first request)."""
         indices = np.asarray(indices, dtype=np.int64)
-        missing = np.unique(indices[self._normal_state[indices] == 0])
+        if (self._normal_state[indices] == 0).any():
+            with self._normal_lock:
+                self._fill_normals(np.unique(indices[self._normal_state[indices] == 0]))
+        return self._normals[indices], self._normal_state[indices] == 1
+
+    def _fill_normals(self, missing: IndexArray) -> None:
         if len(missing):
             if self._normal_source is None:
                 source = self.points
@@ -326,7 +335,6 @@ class ModelIndex:
             )
             self._normals[missing] = normals
             self._normal_state[missing] = np.where(valid, 1, 2)
-        return self._normals[indices], self._normal_state[indices] == 1
 
     @property
     def normals(self) -> FloatArray:

@@ -236,6 +236,8 @@ def test_normals_are_perpendicular_to_planes_and_lines_are_refused() -> None:
     assert usable.all()
     expected = pose_from_xyzrpy(0, 0, 0, 0.4, 0.0, 0.0)[:3, 2]
     np.testing.assert_allclose(np.abs(normals @ expected), 1.0, atol=1e-9)
+    index = ModelIndex(tilted, normal_neighbours=10, normal_voxel_size=0.0)  # same normals, cached in the index
+    np.testing.assert_allclose(np.abs(index.normals @ expected), 1.0, atol=1e-9)
     line = np.column_stack([np.linspace(0, 1, 50), np.zeros(50), np.zeros(50)])
     _, usable = estimate_normals(build_index(line), line, k=10)
     assert not usable.any()
