@@ -12,9 +12,10 @@ partners). Kurt3D gets that start in two ways, both here:
 
 Search design (why it stays cheap):
 
-* Every level searches the full 6-D grid jointly. Searching yaw and translation apart from roll and
-  pitch was rejected: a 5° tilt moves points 15 m away by 1.3 m, more than a coarse cube, so
-  scores taken with the tilt wrong are misleading and the decoupled search picks wrong winners.
+* Every level searches the full 6-D grid jointly rather than yaw and translation apart from roll
+  and pitch: a 5° tilt moves points 15 m away by 1.3 m, more than a coarse cube, so scores taken
+  with the tilt wrong would mislead the yaw/translation search. The joint grid stays affordable
+  because of the next point.
 * Translation steps equal the cube size, so shifting a rotated point by ``(a, b, c)`` steps shifts
   its cube by exactly ``(a, b, c)``: for each rotation the data points are transformed and
   discretised once, and every translation is an integer add plus a hash lookup. The rotation grid
@@ -25,8 +26,11 @@ Search design (why it stays cheap):
   dominate it.
 * Rotations turn about the centroid of the data as currently placed, which keeps rotation and
   translation nearly independent, so per-axis ranges are meaningful.
-* Finer levels search ± one step of the previous level around its winner: a coarse winner is only
-  known to within its own step.
+* Finer levels search a few of their own steps around the previous winner (±2 in translation, ±1
+  in angle by default; with halving cubes ±1 step of the level above): a coarse winner is only
+  known to within its own step, and translation errors also absorb the coupling of a residual
+  rotation about the pivot. This keeps the fine levels at 3,375 candidates each, against tens of
+  thousands at the coarsest level.
 * Ties (common on plateaus at coarse levels) go to the candidate with the smallest offset in step
   units, so a correct start is never moved without evidence.
 
@@ -78,9 +82,9 @@ class OctreeSearchConfig:
     Defaults suit scans spanning ``reference_extent`` (indoor/outdoor robot scans, tens of metres):
     cube sizes 0.8 -> 0.1 m are consecutive octree depths, and the coarsest level covers ±1.6 m in
     x/y, ±0.8 m in z, ±36° yaw and ±6° roll/pitch, enough for starts off by 1 m and 30° yaw with ±5°
-    tilt. ``translation_range``/``yaw_range``/``tilt_range`` bound the coarsest level only (rounded up
-    to whole steps); finer levels search ``refine_steps`` of their own steps each way, which with
-    halving cubes is ± one step of the level above. Angle steps are ``cube_size / lever`` where the
+    tilt about the data's centroid. ``translation_range``/``yaw_range``/``tilt_range`` bound the
+    coarsest level only (rounded up to whole steps); finer levels search
+    ``refine_translation_steps``/``refine_rotation_steps`` of their own steps each way. Angle steps are ``cube_size / lever`` where the
     lever is the ``lever_percentile`` distance of the data from the pivot, capped at
     ``max_angle_step``. ``max_points`` bounds the reduced data points scored per level.
     """

@@ -123,3 +123,23 @@ def test_octree_parent_cubes_contain_exactly_the_children() -> None:
     occupied = tree.occupancy(0.4)
     assert np.all(occupied.contains(points))
     assert not np.any(occupied.contains(points + np.array([0.0, 0.0, 50.0])))
+
+
+def test_count_hits_matches_a_brute_force_count() -> None:
+    from slam6d.geometry import rot_x, rot_z
+
+    rng = np.random.default_rng(7)
+    model = rng.uniform(0.0, 6.0, size=(3_000, 3)) * np.array([1.0, 1.0, 0.3])
+    occupancy = Octree(model, leaf_size=0.25).occupancy(0.5)
+    points = rng.uniform(0.5, 5.5, size=(400, 3)) * np.array([1.0, 1.0, 0.3])
+    pivot = points.mean(axis=0)
+    rotations = np.stack([np.eye(3), rot_z(0.2), rot_x(-0.1) @ rot_z(0.4)])
+    shifts = np.array([[0, 0, 0], [1, 0, 0], [-2, 1, 1], [0, -1, 0]])
+    hits = occupancy.count_hits(points, rotations, pivot, shifts)
+    assert hits.shape == (3, 4)
+    for r, rotation in enumerate(rotations):
+        moved = (points - pivot) @ rotation.T + pivot
+        for s, shift in enumerate(shifts):
+            expected = occupancy.contains(moved + shift * 0.5).sum()
+            assert abs(int(hits[r, s]) - int(expected)) <= 1  # a point on a cube face may round either way
+    assert hits[0, 0] > 0
