@@ -54,8 +54,9 @@ class ICPConfig:
 
     ``data_voxel_size`` > 0 reduces the data scan to one real point per voxel before matching (the
     model keeps full resolution, so accuracy is kept while the per-iteration search shrinks; 10 cm is
-    3DTK's usual ``-r 10``); 0 matches every data point. ``normal_neighbours`` is the k used for model
-    normals, taken from the model reduced to ``normal_voxel_size`` voxels (see :class:`ModelIndex`).
+    3DTK's usual ``-r 10``); 0 matches every data point. Point-to-plane matches against the model
+    reduced to ``normal_voxel_size`` voxels and estimates normals there from ``normal_neighbours``
+    neighbours (see :class:`ModelIndex` for why).
     ``threads`` bounds the worker threads of the search and the numba kernels.
 
     ``epsilon`` (see the module docstring for the exact rule) defaults to 0.1 mm / 0.006°: on real
@@ -266,19 +267,21 @@ class _numba_threads:  # noqa: N801 - used like a function in a with-statement
 
 
 class ModelIndex:
-    """Model points with their kd-tree (and, for point-to-plane, normals) built once and reused.
+    """Model points with their search structures built once and reused, e.g. for a metascan (the
+    union of registered scans) against which many data scans are registered.
 
-    Build one for a metascan (the union of registered scans) and register many data scans against
-    it without rebuilding. Normals are estimated lazily, only for model points that actually get
-    paired, and cached: a pair registration touches a fraction of the model, and point-to-point
-    users never pay for normals at all.
+    Point-to-point pairs each data point with its closest raw model point. Point-to-plane pairs it
+    with the closest point of the *plane sample*, the model reduced to one real point per
+    ``normal_voxel_size`` voxel, and takes the plane normal there from the sample's k nearest
+    neighbours. The reduction is needed for the normals: scanners sample densely along each scan
+    line and sparsely across lines, so the k nearest raw points mostly lie on one line and give no
+    plane, while on the reduced sample they spread across lines. Matching against the same sample
+    costs nothing in accuracy (the plane, not the sample point, carries the residual) and is about
+    30 % faster on the BALM pair. ``normal_voxel_size`` 0 uses the raw points.
 
-    Normal neighbourhoods come from a copy of the model reduced to one real point per
-    ``normal_voxel_size`` voxel. Scanners sample densely along each scan line and sparsely across
-    lines, so the k nearest raw points of a point mostly lie on its own line and give no plane; on
-    the reduced copy they spread across lines. 0 uses the raw points.
-
-    One index may serve registrations running in several threads: filling the normal cache is locked.
+    Everything is built on first use and cached: point-to-point never pays for normals, and normals
+    are estimated only for sample points that actually get paired. One index may serve registrations
+    running in several threads: filling the caches is locked.
     """
 
     def __init__(
@@ -299,47 +302,81 @@ class ModelIndex:
         self.normal_voxel_size = float(normal_voxel_size)
         self.backend = backend
         self.threads = int(threads)
-        self.index = nn.build_index(points, backend=backend, threads=threads)
-        self._normal_source: nn.NeighbourIndex | None = None
-        self._normals = np.zeros((len(points), 3))
-        self._normal_state = np.zeros(len(points), dtype=np.int8)  # 0 unknown, 1 usable, 2 unusable
-        self._normal_lock = threading.Lock()
+        self._lock = threading.RLock()
+        self._index: nn.NeighbourIndex | None = None
+        self._plane_indices: IndexArray | None = None
+        self._plane_index: nn.NeighbourIndex | None = None
+        self._normals = np.zeros((0, 3))
+        self._normal_state = np.zeros(0, dtype=np.int8)  # per sample point: 0 unknown, 1 usable, 2 unusable
 
     def __len__(self) -> int:
         return len(self.points)
 
+    @property
+    def index(self) -> nn.NeighbourIndex:
+        """kd-tree over the raw model points."""
+        if self._index is None:
+            with self._lock:
+                if self._index is None:
+                    self._index = nn.build_index(self.points, backend=self.backend, threads=self.threads)
+        return self._index
+
     def nearest(self, points: FloatArray, max_distance: float) -> tuple[FloatArray, IndexArray]:
+        """Closest raw model point within ``max_distance`` (index -1 where none)."""
         return self.index.nearest(points, max_distance)
 
-    def normals_for(self, indices: IndexArray) -> tuple[FloatArray, NDArray[np.bool_]]:
-        """Normals of the given model points and whether each is usable (estimated on first request)."""
-        indices = np.asarray(indices, dtype=np.int64)
-        if (self._normal_state[indices] == 0).any():
-            with self._normal_lock:
-                self._fill_normals(np.unique(indices[self._normal_state[indices] == 0]))
-        return self._normals[indices], self._normal_state[indices] == 1
-
-    def _fill_normals(self, missing: IndexArray) -> None:
-        if len(missing):
-            if self._normal_source is None:
-                source = self.points
-                if self.normal_voxel_size > 0:
-                    source = self.points[reduce_points(self.points, self.normal_voxel_size)]
-                self._normal_source = (
-                    self.index
-                    if len(source) == len(self.points)
-                    else nn.build_index(source, self.backend, self.threads)
-                )
-            normals, valid = estimate_normals(
-                self._normal_source, self.points[missing], self.normal_neighbours, self.threads
-            )
-            self._normals[missing] = normals
-            self._normal_state[missing] = np.where(valid, 1, 2)
+    @property
+    def plane_indices(self) -> IndexArray:
+        """Indices (into ``points``) of the plane sample."""
+        self._ensure_plane_sample()
+        assert self._plane_indices is not None
+        return self._plane_indices
 
     @property
-    def normals(self) -> FloatArray:
-        """Normals of all model points (zero where unusable), e.g. for drawing."""
-        return self.normals_for(np.arange(len(self.points)))[0]
+    def plane_index(self) -> nn.NeighbourIndex:
+        """kd-tree over the plane sample (its ``points`` are the sample's coordinates)."""
+        self._ensure_plane_sample()
+        assert self._plane_index is not None
+        return self._plane_index
+
+    def _ensure_plane_sample(self) -> None:
+        if self._plane_index is not None:
+            return
+        with self._lock:
+            if self._plane_index is not None:
+                return
+            if self.normal_voxel_size > 0:
+                indices = reduce_points(self.points, self.normal_voxel_size)
+            else:
+                indices = np.arange(len(self.points), dtype=np.int64)
+            self._normals = np.zeros((len(indices), 3))
+            self._normal_state = np.zeros(len(indices), dtype=np.int8)
+            self._plane_indices = indices
+            self._plane_index = (
+                self.index
+                if len(indices) == len(self.points)
+                else nn.build_index(self.points[indices], self.backend, self.threads)
+            )
+
+    def plane_normals_for(self, sample: IndexArray) -> tuple[FloatArray, NDArray[np.bool_]]:
+        """Normals at the given plane-sample points (indices into the sample) and whether each is usable."""
+        source = self.plane_index
+        sample = np.asarray(sample, dtype=np.int64)
+        if (self._normal_state[sample] == 0).any():
+            with self._lock:
+                missing = np.unique(sample[self._normal_state[sample] == 0])
+                if len(missing):
+                    normals, usable = estimate_normals(
+                        source, source.points[missing], self.normal_neighbours, self.threads
+                    )
+                    self._normals[missing] = normals
+                    self._normal_state[missing] = np.where(usable, 1, 2)
+        return self._normals[sample], self._normal_state[sample] == 1
+
+    def plane_normals(self) -> tuple[FloatArray, FloatArray, NDArray[np.bool_]]:
+        """(points, normals, usable) of the whole plane sample, e.g. for drawing the model's normals."""
+        normals, usable = self.plane_normals_for(np.arange(len(self.plane_indices)))
+        return self.plane_index.points, normals, usable
 
 
 def _as_model(model: ModelIndex | FloatArray, config: ICPConfig) -> ModelIndex:
@@ -419,17 +456,22 @@ def point_to_plane_step(data: FloatArray, model: FloatArray, normals: FloatArray
 
 
 def _pairs(
-    model: ModelIndex, moved: FloatArray, max_distance: float, need_normals: bool
-) -> tuple[IndexArray, IndexArray, FloatArray, FloatArray | None]:
-    """Paired (data_idx, model_idx, distance, model normal); pairs without a usable normal are dropped."""
-    dist, idx = model.nearest(moved, max_distance)
+    model: ModelIndex, moved: FloatArray, max_distance: float, point_to_plane: bool
+) -> tuple[IndexArray, FloatArray, FloatArray, FloatArray | None]:
+    """(data_idx, paired model points, distances, model normals or None).
+
+    Point-to-plane pairs with the plane sample and drops pairs whose normal is unusable.
+    """
+    if not point_to_plane:
+        dist, idx = model.nearest(moved, max_distance)
+        data_idx = np.flatnonzero(idx >= 0)
+        return data_idx, model.points[idx[data_idx]], dist[data_idx], None
+    sample = model.plane_index
+    dist, idx = sample.nearest(moved, max_distance)
     data_idx = np.flatnonzero(idx >= 0)
-    model_idx = idx[data_idx]
-    if not need_normals:
-        return data_idx, model_idx, dist[data_idx], None
-    normals, usable = model.normals_for(model_idx)
-    data_idx, model_idx = data_idx[usable], model_idx[usable]
-    return data_idx, model_idx, dist[data_idx], normals[usable]
+    normals, usable = model.plane_normals_for(idx[data_idx])
+    data_idx = data_idx[usable]
+    return data_idx, sample.points[idx[data_idx]], dist[data_idx], normals[usable]
 
 
 def icp_iterations(
@@ -481,7 +523,7 @@ def _iterate(model: ModelIndex, data: FloatArray, transform: FloatArray, config:
         last_stage = stage == len(stages) - 1
         tolerance = config.epsilon if last_stage else max(config.epsilon, config.stage_epsilon)
         moved = transform_points(transform, data)
-        data_idx, model_idx, dist, normals = _pairs(model, moved, max_distance, point_to_plane)
+        data_idx, paired_model, dist, normals = _pairs(model, moved, max_distance, point_to_plane)
         if len(data_idx) < config.min_pairs:
             usable = " with a usable model normal" if point_to_plane else ""
             raise RegistrationError(
@@ -490,7 +532,6 @@ def _iterate(model: ModelIndex, data: FloatArray, transform: FloatArray, config:
                 " enough or the initial pose is too far off"
             )
         rms = float(np.sqrt(np.mean(dist * dist)))
-        paired_model = model.points[model_idx]
         if normals is not None:
             step = point_to_plane_step(moved[data_idx], paired_model, normals)
         else:

@@ -228,6 +228,13 @@ def test_data_reduction_keeps_real_points_and_accuracy(model_index: ModelIndex, 
     assert_pose_close(reduced.transform, MOTION, 1e-4, 0.01)  # real points, not voxel centres: still exact
 
 
+def test_plane_sample_is_a_reduction_to_real_model_points(model: np.ndarray) -> None:
+    index = ModelIndex(model, normal_voxel_size=0.5)
+    assert len(model) // 10 < len(index.plane_indices) < len(model) // 2
+    np.testing.assert_array_equal(index.plane_index.points, model[index.plane_indices])
+    assert len(ModelIndex(model, normal_voxel_size=0.0).plane_indices) == len(model)
+
+
 def test_normals_are_perpendicular_to_planes_and_lines_are_refused() -> None:
     rng = np.random.default_rng(4)
     plane = np.column_stack([rng.uniform(-1, 1, (500, 2)), np.zeros(500)]) @ rot_z(0.3).T
@@ -237,7 +244,10 @@ def test_normals_are_perpendicular_to_planes_and_lines_are_refused() -> None:
     expected = pose_from_xyzrpy(0, 0, 0, 0.4, 0.0, 0.0)[:3, 2]
     np.testing.assert_allclose(np.abs(normals @ expected), 1.0, atol=1e-9)
     index = ModelIndex(tilted, normal_neighbours=10, normal_voxel_size=0.0)  # same normals, cached in the index
-    np.testing.assert_allclose(np.abs(index.normals @ expected), 1.0, atol=1e-9)
+    sample, sample_normals, sample_usable = index.plane_normals()
+    np.testing.assert_array_equal(sample, tilted)
+    assert sample_usable.all()
+    np.testing.assert_allclose(np.abs(sample_normals @ expected), 1.0, atol=1e-9)
     line = np.column_stack([np.linspace(0, 1, 50), np.zeros(50), np.zeros(50)])
     _, usable = estimate_normals(build_index(line), line, k=10)
     assert not usable.any()
