@@ -331,6 +331,11 @@ def _strongest(pairs: Sequence[NeighbourPair], count: int, keep: int) -> list[Ne
     for lst in by_scan:
         for pair in sorted(lst, key=lambda p: -p.pairs)[:keep]:
             chosen[(pair.i, pair.j)] = pair
+        # the strongest pairs are nearly always the scan's temporal neighbours; the pairs that make a
+        # map globally consistent are the long-range ones, so keep the best of those too
+        far = [p for p in lst if abs(p.j - p.i) > keep]
+        for pair in sorted(far, key=lambda p: -p.pairs)[: max(1, keep // 2)]:
+            chosen[(pair.i, pair.j)] = pair
     for pair in pairs:
         if pair.j == pair.i + 1:
             chosen[(pair.i, pair.j)] = pair

@@ -163,3 +163,34 @@ def test_cli_run_writes_poses_frames_and_report(tmp_path) -> None:
     assert len(list((tmp_path / "out").glob("scan*.frames"))) == 6
     report = json.loads((tmp_path / "out" / "report.json").read_text())
     assert report["relaxation"] == "lum" and "registration" in report["stage_seconds"]
+
+
+def test_drifted_odometry_reproduces_the_agreed_balm_generator(shared_data) -> None:  # type: ignore[no-untyped-def]
+    from slam6d.drift import drifted_odometry
+    from slam6d.metrics import relative_pose_error
+
+    reference = read_kitti_poses(shared_data / "balm_hall" / "poses_subset_kitti3x4.txt")
+    odometry = drifted_odometry(reference, seed=1)
+    assert absolute_trajectory_error(odometry, reference, align=False).rmse == pytest.approx(0.427, abs=0.001)
+    assert relative_pose_error(odometry, reference).translation_mean == pytest.approx(0.0126, abs=0.0001)
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(reason="self-consistency target not met yet: mean 3.2 cm, pair 20-70 9.3 cm (RPE target met)")
+def test_balm_hall_from_drifted_odometry(shared_data) -> None:  # type: ignore[no-untyped-def]
+    from benchmarks.trajectory import self_consistency
+    from slam6d.drift import drifted_odometry
+    from slam6d.io.registry import read_sequence
+    from slam6d.metrics import relative_pose_error
+
+    sequence = read_sequence(shared_data / "balm_hall" / "velodyne_style_bin", "kitti")
+    reference = read_kitti_poses(shared_data / "balm_hall" / "poses_subset_kitti3x4.txt")
+    for scan, pose in zip(sequence, drifted_odometry(reference, seed=1), strict=True):
+        scan.pose, scan.has_pose = pose, True
+    pipeline = Pipeline(sequence, PipelineConfig())
+    pipeline.run()
+    rpe = relative_pose_error(pipeline.poses, reference)
+    assert rpe.translation_mean <= 0.006 and rpe.rotation_mean_deg <= 0.05
+    moved = self_consistency(sequence, pipeline.poses)
+    assert moved[(57, 88)] <= 0.01
+    assert float(np.mean(list(moved.values()))) <= 0.015
