@@ -6,6 +6,7 @@ import json
 import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
+from dataclasses import replace
 from pathlib import Path
 from typing import Annotated
 
@@ -53,6 +54,59 @@ def formats() -> None:
 
 
 # -- commands are added below, one per engine entry point --
+
+
+@app.command()
+def match(
+    model: Annotated[Path, typer.Argument(help="Scan that stays put.")],
+    data: Annotated[Path, typer.Argument(help="Scan to move onto MODEL.")],
+    fmt: FormatOption = None,
+    guess: Annotated[
+        str,
+        typer.Option(
+            help="Octree cube search before ICP: auto (when poses are missing or ICP fits poorly), octree, none."
+        ),
+    ] = "auto",
+    method: Annotated[
+        str, typer.Option(help="ICP minimiser: point_to_plane or point_to_point (SVD).")
+    ] = "point_to_plane",
+    max_distance: Annotated[float, typer.Option(help="ICP max pair distance in metres.")] = 0.25,
+    iterations: Annotated[int, typer.Option(help="ICP iteration cap.")] = 50,
+    voxel: Annotated[
+        float | None, typer.Option(help="Reduce DATA to one real point per voxel of this size (m); 0 = all points.")
+    ] = None,
+    min_range: Annotated[float | None, typer.Option(help="Drop points nearer than this (files' units).")] = None,
+    max_range: Annotated[float | None, typer.Option(help="Drop points farther than this (files' units).")] = None,
+    trace: Annotated[Path | None, typer.Option(help="Write the octree-search and ICP trace as JSON.")] = None,
+) -> None:
+    """Register DATA onto MODEL; print the 4x4 transform (row-major, the files' own units) mapping DATA into MODEL."""
+    from slam6d.icp import ICPConfig
+    from slam6d.io.registry import ReadOptions, read_scan, resolve_format
+    from slam6d.pair import GUESS_CHOICES, register_pair
+    from slam6d.trace import write_trace
+
+    try:
+        config = ICPConfig(max_distance=max_distance, max_iterations=iterations, method=method)
+        if voxel is not None:
+            config = replace(config, data_voxel_size=voxel)
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc)) from None
+    if guess not in GUESS_CHOICES:
+        raise typer.BadParameter(f"--guess must be one of {', '.join(GUESS_CHOICES)}, got {guess!r}")
+    conventions = [resolve_format(path, fmt).convention for path in (model, data)]
+    options = ReadOptions(min_range=min_range, max_range=max_range)
+    model_scan, data_scan = (read_scan(path, fmt, options) for path in (model, data))
+    result = register_pair(model_scan, data_scan, guess, config)
+    # Back to native units: p_model_native = S_model^-1 · T · S_data · p_data_native.
+    native = conventions[0].similarity_from_canonical() @ result.transform @ conventions[1].similarity_to_canonical()
+    for row in native:
+        typer.echo(" ".join(f"{value:.9g}" for value in row))
+    err.print(
+        f"ICP: {len(result.icp.iterations)} iterations, {result.icp.pairs} pairs, "
+        f"rms {result.icp.rms * 100:.2f} cm, converged={result.icp.converged}"
+    )
+    if trace is not None:
+        write_trace(trace, result)
 
 
 @app.command()

@@ -215,6 +215,17 @@ class FrameConvention:
     def points_to_native(self, points: Matrix) -> Matrix:
         return (np.asarray(points, dtype=np.float64) / self.metres_per_unit) @ self.axes_matrix
 
+    def similarity_to_canonical(self) -> Matrix:
+        """4x4 matrix taking native homogeneous points to canonical ones (scale and axes, no translation)."""
+        matrix = np.eye(4)
+        matrix[:3, :3] = self.metres_per_unit * self.axes_matrix
+        return matrix
+
+    def similarity_from_canonical(self) -> Matrix:
+        matrix = np.eye(4)
+        matrix[:3, :3] = self.axes_matrix.T / self.metres_per_unit
+        return matrix
+
     def pose_to_canonical(self, pose: Matrix) -> Matrix:
         a = self.axes_matrix
         return make_pose(a @ pose[:3, :3] @ a.T, self.metres_per_unit * (a @ pose[:3, 3]))
