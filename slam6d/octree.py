@@ -313,7 +313,8 @@ class Octree:
         self.leaf_size = _check_size(leaf_size, "leaf_size")
         lower, upper = _bounds(self.points)
         self.origin: FloatArray = np.floor(lower / self.leaf_size) * self.leaf_size
-        leaves_per_axis = max(1, math.ceil(float((upper - self.origin).max()) / self.leaf_size + 1e-9))
+        # the cell of the farthest point is floor(span / leaf), so the root must hold one more leaf than that
+        leaves_per_axis = math.floor(float((upper - self.origin).max()) / self.leaf_size) + 1
         self.depth = max(0, math.ceil(math.log2(leaves_per_axis)))
         if self.depth > BITS_PER_AXIS:
             raise ValueError(f"leaf_size {self.leaf_size} is too small for a cloud spanning {upper - lower}")

@@ -279,3 +279,33 @@ def test_bunny_neighbours_recovered_from_30deg_where_plain_icp_fails(
     refined = icp(model.points, data.points, guess.transform, config)
     metres, radians = pose_difference(refined.transform, reference)
     assert metres < 0.001 and radians < 0.5 * DEG, (metres, radians / DEG)
+
+
+def test_without_overlap_the_start_is_kept_and_scores_are_zero(hall_pair) -> None:
+    model, data, truth = hall_pair
+    far = pose_from_xyzrpy(500.0, 0.0, 0.0, 0.0, 0.0, 0.0) @ truth
+    result = octree_guess(model, data, far, OctreeSearchConfig(cube_sizes=(0.8, 0.4)))
+    assert result.score == 0
+    assert all(level.candidates.scores.max() == 0 for level in result.levels)
+    np.testing.assert_allclose(result.transform, far)
+
+
+def test_empty_clouds_are_rejected() -> None:
+    from slam6d.errors import EmptyScanError
+
+    with pytest.raises(EmptyScanError, match="data points"):
+        octree_guess(np.ones((10, 3)), np.zeros((0, 3)))
+    with pytest.raises(EmptyScanError, match="model points"):
+        octree_guess(np.zeros((0, 3)), np.ones((10, 3)))
+
+
+def test_a_prebuilt_octree_gives_the_same_search(hall_pair) -> None:
+    model, data, truth = hall_pair
+    config = OctreeSearchConfig(cube_sizes=(0.8, 0.4), yaw_range=10 * DEG)
+    start = pose_from_xyzrpy(0.4, 0.0, 0.0, 0.0, 0.0, 6 * DEG) @ truth
+    tree = Octree(model, leaf_size=0.1)  # built once per scan, shared with the viewer
+    from_points = octree_guess(model, data, start, config)
+    from_tree = octree_guess(tree, data, start, config)
+    np.testing.assert_allclose(from_tree.transform, from_points.transform)
+    for a, b in zip(from_tree.levels, from_points.levels, strict=True):
+        np.testing.assert_array_equal(a.candidates.scores, b.candidates.scores)

@@ -143,3 +143,16 @@ def test_count_hits_matches_a_brute_force_count() -> None:
             expected = occupancy.contains(moved + shift * 0.5).sum()
             assert abs(int(hits[r, s]) - int(expected)) <= 1  # a point on a cube face may round either way
     assert hits[0, 0] > 0
+
+
+def test_octree_of_degenerate_clouds() -> None:
+    single = Octree(np.array([[1.0, 2.0, 3.0]]), leaf_size=0.5)
+    assert single.depth == 0 and len(single.occupancy_at_depth(0)) == 1
+    # a point exactly on the far face of the leaf grid still gets its own leaf, not a clipped one
+    edge = Octree(np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]]), leaf_size=0.5)
+    assert edge.depth == 2 and edge.root_size == pytest.approx(2.0)
+    np.testing.assert_allclose(edge.occupied_cubes(0.5)[:, 0], [0.25, 1.25])
+    with pytest.raises(ValueError, match="depth"):
+        edge.cube_size(3)
+    with pytest.raises(ValueError, match="leaf_size"):
+        Octree(np.zeros((2, 3)), leaf_size=-1.0)
