@@ -100,7 +100,6 @@ class ScanModels:
         self.points = [np.ascontiguousarray(p, dtype=np.float64) for p in points]
         self.config = config
         self._indices: list[ModelIndex | None] = list(indices) if indices is not None else [None] * len(points)
-        self._all_normals: set[int] = set()
 
     def __len__(self) -> int:
         return len(self.points)
@@ -116,14 +115,6 @@ class ScanModels:
                 threads=self.config.threads,
             )
             self._indices[k] = model
-        return model
-
-    def with_normals(self, k: int) -> ModelIndex:
-        """The scan's index with the normals of all its points estimated (done once per scan)."""
-        model = self.index(k)
-        if k not in self._all_normals:
-            _ = model.normals
-            self._all_normals.add(k)
         return model
 
     def thinned(self, k: int, count: int) -> FloatArray:
@@ -148,25 +139,6 @@ class UnionIndex(ModelIndex):
             backend=models.config.nn_backend,
             threads=models.config.threads,
         )
-        self._adopt_member_normals(models, poses)
-
-    def _adopt_member_normals(self, models: ScanModels, poses: Sequence[Matrix]) -> None:
-        """Reuse the normals each member scan has already estimated (rotated into the world).
-
-        Re-estimating them on the union would cost more than the matching itself and gain little:
-        a point's neighbourhood lies mostly in its own scan. Normals a member does not have yet are
-        still estimated lazily on the union.
-        """
-        if not hasattr(self, "_normal_state") or models.config.method != "point_to_plane":
-            return
-        offset = 0
-        for k in self.members:
-            own = models.with_normals(k)
-            count = len(models.points[k])
-            if own is not None and hasattr(own, "_normal_state"):
-                self._normals[offset : offset + count] = own._normals @ poses[k][:3, :3].T
-                self._normal_state[offset : offset + count] = own._normal_state
-            offset += count
 
 
 def neighbour_pairs(
