@@ -16,7 +16,7 @@ import numpy as np
 from slam6d.errors import FormatError
 from slam6d.geometry import UOS, Matrix, rotation_to_euler, uos_pose
 from slam6d.io.registry import CloudData, ScanFormat, register_format
-from slam6d.io.text import parse_numeric_rows
+from slam6d.io.text import parse_numeric_bytes, parse_numeric_rows
 
 NO_ECHO_RANGE_CM = 3276.0
 _SCAN_NAME = re.compile(r"^scan(\d{3})\.3d$")
@@ -55,13 +55,18 @@ def write_pose_file(path: Path, native_pose: Matrix) -> None:
 
 
 def read_uos_scan(path: Path) -> CloudData:
+    columns = (3, 4, 6, 7)
     try:
-        text = path.read_text()
-    except UnicodeDecodeError:
-        raise FormatError(path, "not a text file (uos scans are ASCII 'x y z' lines)") from None
+        data = path.read_bytes()
     except OSError as exc:
         raise FormatError(path, f"cannot read: {exc.strerror}") from None
-    rows = parse_numeric_rows(path, text, allowed_columns=(3, 4, 6, 7))
+    rows = parse_numeric_bytes(data, columns)
+    if rows is None:  # not plain numbers: the general parser reads it or names the bad line
+        try:
+            text = data.decode()
+        except UnicodeDecodeError:
+            raise FormatError(path, "not a text file (uos scans are ASCII 'x y z' lines)") from None
+        rows = parse_numeric_rows(path, text, allowed_columns=columns)
     points = rows[:, :3]
     intensity = rows[:, 3].astype(np.float32) if rows.shape[1] in (4, 7) else None
     echo = np.linalg.norm(points, axis=1) < NO_ECHO_RANGE_CM
