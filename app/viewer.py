@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 import viser
 
-from app import scene
+from app import render_panel, scene
 from app.registration import pipeline_config, working_copy
 from app.workbench import Workbench
 from slam6d.errors import Slam6dError
@@ -50,6 +50,7 @@ class SessionViewer:
         self.stepper: Stepper | None = None
         self.client_names: dict[int, Any] = {}
         self._build_gui()
+        self.render_panel = render_panel.RenderPanel(self)  # the "Fly-through" folder
         self.server.on_client_connect(self._on_connect)
         threading.Thread(target=self._load, name=f"viewer-load-{session_id}", daemon=True).start()
 

@@ -266,6 +266,10 @@ def _session_camera_path(session: object) -> CameraPath | None:
     saved = getter() if callable(getter) else getter
     if saved is None or isinstance(saved, CameraPath):
         return saved
+    if isinstance(saved, list):  # Session.camera_path(): the keyframe list the workbench saved; [] is none yet
+        return (
+            camera_path_from_dict({"keyframes": saved}, source=getattr(session, "folder", "session")) if saved else None
+        )
     if isinstance(saved, dict):
         return camera_path_from_dict(saved, source="session")
     if isinstance(saved, str | Path):
