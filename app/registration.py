@@ -74,7 +74,14 @@ def working_copy(sequence: ScanSequence) -> ScanSequence:
 def accepted_loops(report: Any) -> list[dict[str, Any]]:
     loops = getattr(report, "loops", None) or []
     return [
-        {"i": int(h.i), "j": int(h.j), "kind": "loop", "fitness": float(getattr(h, "fitness", 0.0))}
+        {
+            "i": int(h.i),
+            "j": int(h.j),
+            "kind": "loop",
+            "fitness": float(getattr(h, "fitness", 0.0)),
+            "rms": to_jsonable(float(getattr(h, "rms", float("nan")))),
+            "transform": to_jsonable(getattr(h, "transform", None)),
+        }
         for h in loops
         if getattr(h, "accepted", True)
     ]
@@ -87,14 +94,32 @@ def registration_job(workbench: Any, session_id: str, author: str, parameters: d
     config = pipeline_config(state.session.config.engine, parameters)
 
     def work(progress: Progress, cancel: Cancel) -> dict[str, Any]:
+        from app.traces import TraceRecorder
+
         sequence = working_copy(state.sequence(lambda d, t: progress("reading scans", d, t)))
         runner = pipeline.Pipeline(sequence, config)
-        report = runner.run(progress, cancel)
+        recorder = TraceRecorder()
+        report = recorder.attach(runner).run(progress, cancel)
         summary = to_jsonable(report)
-        graph = {"loops": accepted_loops(report), "removed": []}
-        revision = workbench.commit(
-            session_id, runner.poses, author, "register", {"config": to_jsonable(config)}, graph=graph
-        )
-        return {"revision": revision, "report": summary}
+        return store_run(workbench, session_id, author, runner, recorder, {"config": to_jsonable(config)}) | {
+            "report": summary
+        }
 
     return work
+
+
+def store_run(workbench: Any, session_id: str, author: str, runner: Any, recorder: Any, parameters: dict) -> dict:
+    """Commit a finished run with its trace file named in the journal, then its loops for review."""
+    from app.editing import hypotheses_entry
+
+    session = workbench.state(session_id).session
+    meta = {"author": author, "final_poses": to_jsonable(runner.poses)}
+    name = recorder.save(session, runner.odometry, meta)
+    graph = {"loops": accepted_loops(runner.report), "removed": []}
+    revision = workbench.commit(
+        session_id, runner.poses, author, "register", {**parameters, "trace": name}, graph=graph
+    )
+    if runner.report.loops:
+        session.append(author, "loop_hypotheses", hypotheses_entry(runner.report.loops))
+        workbench.notify(session_id)
+    return {"revision": revision, "trace": name}

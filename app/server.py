@@ -17,6 +17,7 @@ from fastapi.responses import FileResponse, RedirectResponse
 from fastapi.staticfiles import StaticFiles
 
 from app.api import build_router
+from app.edit_api import build_edit_router
 from app.render_panel import build_render_router
 from app.workbench import UnknownSessionError, Workbench
 
@@ -44,6 +45,7 @@ def create_app(sessions_dir: Path | str, viewers: bool = True, max_upload_mb: in
     app.state.workbench = workbench
     app.state.on_shutdown = []
     app.include_router(build_router(workbench))
+    app.include_router(build_edit_router(workbench))  # loops, edges, moves, relaxation, guesses, traces
     app.include_router(build_render_router(workbench))  # fly-through: camera path, render jobs, downloads
 
     if viewers:

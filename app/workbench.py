@@ -93,6 +93,10 @@ class Workbench:
         for listener in self._revision_listeners:
             listener(session_id)
 
+    def notify(self, session_id: str) -> None:
+        """Tell the views a session changed without a new revision (e.g. new loop hypotheses to review)."""
+        self._changed(session_id)
+
     def session_ids(self) -> list[str]:
         return sorted(p.name for p in self.sessions_dir.iterdir() if (p / SESSION_FILE).is_file() and _ID.match(p.name))
 

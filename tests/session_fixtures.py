@@ -42,3 +42,16 @@ def write_corridor_scans(folder: Path, scans: int = 4, points: int = 3000, seed:
         odometry = pose.copy()
         odometry[:2, 3] += rng.normal(0.0, odometry_noise, 2)
         write_uos_scan(folder, k, UOS.points_to_native(local), UOS.pose_to_native(odometry))
+
+
+def write_loop_scans(folder: Path, scans: int = 8, points: int = 6000, seed: int = 1) -> list[np.ndarray]:
+    """A small simulated loop (drifting odometry as the files' poses); returns the true poses.
+
+    The robot comes back to its start, so the last scans are loop hypotheses against the first.
+    """
+    from tests.simulated_loop import simulated_loop
+
+    sim = simulated_loop(scans=scans, points=points, seed=seed, loop_length=16.0, loop_width=10.0)
+    for k, scan in enumerate(sim.sequence.scans):
+        write_uos_scan(folder, k, UOS.points_to_native(scan.points), UOS.pose_to_native(scan.pose))
+    return sim.truth
