@@ -75,16 +75,7 @@ def build_edit_router(workbench: Workbench) -> APIRouter:
     @router.post("/loops/detect", status_code=202)
     def detect_loops(session_id: str, author: Author = "anonymous") -> dict[str, Any]:
         """Find and verify loop hypotheses from the current poses (a job); the result is the review list."""
-
-        def make() -> Work:
-            def work(progress, cancel):  # type: ignore[no-untyped-def]
-                found = editor.detect_loops(session_id, progress, cancel)
-                editor.store_hypotheses(session_id, found, author)
-                return {"hypotheses": len(found), "verified": sum(h.accepted for h in found)}
-
-            return work
-
-        return submit(session_id, "detect-loops", make, author, {})
+        return submit(session_id, "detect-loops", lambda: editor.detect_loops_job(session_id, author), author, {})
 
     @router.post("/loops/{k}/accept")
     def accept_loop(session_id: str, k: int, author: Author = "anonymous") -> dict[str, Any]:

@@ -286,6 +286,17 @@ class Editor:
                 progress("verifying loops", n + 1, len(chosen))
         return verified
 
+    def detect_loops_job(self, session_id: str, author: str) -> Work:
+        """Detection as a job whose result becomes the review list (a journal entry, no new revision)."""
+        self._session(session_id)
+
+        def work(progress: Progress, cancel: Cancel) -> dict[str, Any]:
+            found = self.detect_loops(session_id, progress, cancel)
+            self.store_hypotheses(session_id, found, author)
+            return {"hypotheses": len(found), "verified": sum(h.accepted for h in found)}
+
+        return work
+
     def store_hypotheses(self, session_id: str, hypotheses: Sequence[LoopHypothesis], author: str) -> None:
         self._session(session_id).append(author, "loop_hypotheses", hypotheses_entry(hypotheses))
         self.workbench.notify(session_id)

@@ -16,7 +16,9 @@ import numpy as np
 import viser
 
 from app import render_panel, scene
+from app.panels import build_panels
 from app.registration import pipeline_config, working_copy
+from app.traces import TraceRecorder
 from app.workbench import Workbench
 from slam6d.errors import Slam6dError
 from slam6d.geometry import Matrix, rotation_to_quaternion
@@ -51,6 +53,7 @@ class SessionViewer:
         self.client_names: dict[int, Any] = {}
         self._build_gui()
         self.render_panel = render_panel.RenderPanel(self)  # the "Fly-through" folder
+        self.panels = build_panels(self)  # loops, graph edits, octree guess, replay (app/panels)
         self.server.on_client_connect(self._on_connect)
         threading.Thread(target=self._load, name=f"viewer-load-{session_id}", daemon=True).start()
 
@@ -281,6 +284,8 @@ class SessionViewer:
                 self.recolour()
         self._draw_graph()
         self._update_status()
+        for panel in self.panels:
+            self._run_safely(panel.refresh)
 
     # -------------------------------------------------------------- jobs
 
@@ -306,7 +311,8 @@ class SessionViewer:
             self.warn(f"{job.kind} failed: {job.message}")
             self._update_status()
         else:
-            self.warn("" if job.status == "done" else f"{job.kind} {job.status}")
+            # an edit's guardrail (e.g. residuals jumped) stays visible after the job
+            self.warn((job.result.get("warning") or "") if job.status == "done" else f"{job.kind} {job.status}")
             self._update_status()
 
     def _stepper(self, author: str) -> Stepper:
@@ -347,6 +353,8 @@ class Stepper:
         self.author = author
         config = pipeline_config(viewer.state.session.config.engine)
         self.pipeline = Pipeline(working_copy(viewer.state.sequence()), config)
+        self.recorder = TraceRecorder()  # the stepped run is stored for replay too
+        self.recorder.attach(self.pipeline)
         self.history: list[tuple[int, float, int]] = []
         self.current: int | None = None
         self.model: list[int] = []
@@ -429,13 +437,9 @@ class Stepper:
             viewer.server.scene.add_line_segments(
                 "/correspondences", np.zeros((1, 2, 3), np.float32), colors=(0, 0, 0), visible=False
             )
-            graph = {"loops": [], "removed": []}
-            from app.registration import accepted_loops
+            from app.registration import store_run
 
-            graph["loops"] = accepted_loops(event.report)
-            viewer.workbench.commit(
-                viewer.session_id, self.pipeline.poses, self.author, "register", {"stepped": True}, graph=graph
-            )
+            store_run(viewer.workbench, viewer.session_id, self.author, self.pipeline, self.recorder, {"stepped": True})
             viewer.step_status.content = "registration finished; stored as a new revision"
         elif kind == "LoopsDetected":
             accepted = sum(1 for h in event.hypotheses if getattr(h, "accepted", False))

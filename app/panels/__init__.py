@@ -1,0 +1,33 @@
+"""Folders of the 3D view's control panel beyond viewing and registration.
+
+Each panel is thin: it turns buttons into calls of :mod:`app.editing` (the same calls the REST API
+makes) and draws what comes back. Panels are rebuilt from the journal on every revision change
+(``refresh``), so every browser on a session shows the same lists.
+"""
+
+from __future__ import annotations
+
+import threading
+from typing import Any, Protocol
+
+
+class Panel(Protocol):
+    def refresh(self) -> None: ...
+
+
+def build_panels(viewer: Any) -> list[Panel]:
+    from app.panels.edit import EditPanel
+    from app.panels.guess import GuessPanel
+    from app.panels.loops import LoopsPanel
+    from app.panels.replay import ReplayPanel
+
+    panels: list[Panel] = [LoopsPanel(viewer), EditPanel(viewer), GuessPanel(viewer), ReplayPanel(viewer)]
+
+    def first_fill() -> None:  # lists need the scans' poses, which load in the background
+        viewer.ready.wait()
+        if not viewer.error:
+            for panel in panels:
+                viewer._run_safely(panel.refresh)
+
+    threading.Thread(target=first_fill, name=f"panels-{viewer.session_id}", daemon=True).start()
+    return panels

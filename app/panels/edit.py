@@ -1,0 +1,101 @@
+"""Correcting by hand: add an ICP-refined edge between two scans, delete an edge, drag a scan with a gizmo."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from app.editing import editor_for
+from slam6d.geometry import make_pose, quaternion_to_rotation, rotation_to_quaternion
+
+_NONE = "—"
+
+
+class EditPanel:
+    def __init__(self, viewer: Any) -> None:
+        self.viewer = viewer
+        self.editor = editor_for(viewer.workbench)
+        self.session_id = viewer.session_id
+        self.gizmo: Any = None
+        gui = viewer.server.gui
+        with gui.add_folder("Edit graph", expand_by_default=False):
+            self.scan_a = gui.add_number("Scan A", 0, min=0, step=1)
+            self.scan_b = gui.add_number("Scan B", 1, min=0, step=1)
+            self.force = gui.add_checkbox("Keep edge even if ICP disagrees", False)
+            self.add = gui.add_button("Add edge A–B (ICP)")
+            self.edge = gui.add_dropdown("Edge", [_NONE])
+            self.delete = gui.add_button("Delete edge")
+            self.drag = gui.add_checkbox("Drag scan A (gizmo)", False)
+            self.commit_move = gui.add_button("Keep dragged pose", disabled=True)
+            self.icp_here = gui.add_button("ICP from here", disabled=True)
+            self.result = gui.add_markdown("")
+        run = viewer._run_safely
+        self.add.on_click(lambda e: run(lambda: self._add(e)))
+        self.delete.on_click(lambda e: run(lambda: self._delete(e)))
+        self.drag.on_update(lambda _: run(self._toggle_gizmo))
+        self.commit_move.on_click(lambda e: run(lambda: self._move(e, refine=False)))
+        self.icp_here.on_click(lambda e: run(lambda: self._move(e, refine=True)))
+
+    def _add(self, event: Any) -> None:
+        i, j = int(self.scan_a.value), int(self.scan_b.value)
+        out = self.editor.add_edge(self.session_id, i, j, self.viewer.author(event), bool(self.force.value))
+        edge = out["edge"]
+        self.result.content = (
+            f"edge {edge['i']}–{edge['j']} added (fitness {edge['fitness']:.2f}, RMS {edge['rms']:.3f} m), "
+            f"revision {out['revision']}"
+        )
+        self.viewer.warn(out["warning"] or "")
+
+    def _delete(self, event: Any) -> None:
+        if self.edge.value == _NONE:
+            raise ValueError("choose an edge first")
+        k = int(self.edge.value.split(":")[0])
+        out = self.editor.delete_edge(self.session_id, k, self.viewer.author(event))
+        d = out["deleted"]
+        self.result.content = f"{d['kind']} edge {d['i']}–{d['j']} deleted, revision {out['revision']}"
+
+    def _toggle_gizmo(self) -> None:
+        viewer = self.viewer
+        if self.gizmo is not None:
+            self.gizmo.remove()
+            self.gizmo = None
+        dragging = bool(self.drag.value)
+        self.commit_move.disabled = self.icp_here.disabled = not dragging
+        if not dragging:
+            viewer.set_poses(viewer.state.session.poses())  # an unkept drag is dropped
+            return
+        k = int(self.scan_a.value)
+        pose = viewer.poses[k]
+        self.gizmo = viewer.server.scene.add_transform_controls(
+            "/edit/gizmo", scale=2.0, position=pose[:3, 3], wxyz=rotation_to_quaternion(pose[:3, :3])
+        )
+
+        @self.gizmo.on_update
+        def _(_: Any) -> None:  # the scan follows the gizmo (pose-only update)
+            moved = self._gizmo_pose()
+            viewer.set_poses([moved] * (k + 1), [k])
+
+    def _gizmo_pose(self) -> np.ndarray:
+        return make_pose(quaternion_to_rotation(np.asarray(self.gizmo.wxyz)), np.asarray(self.gizmo.position))
+
+    def _move(self, event: Any, refine: bool) -> None:
+        if self.gizmo is None:
+            raise ValueError("turn on 'Drag scan A' first")
+        k = int(self.scan_a.value)
+        out = self.editor.move_scan(self.session_id, k, self._gizmo_pose(), self.viewer.author(event), refine)
+        self.drag.value = False
+        self.result.content = (
+            f"scan {k} {'matched from the dragged place' if refine else 'moved'}: residual RMS "
+            f"{out['residual_before']['rms']:.3f} → {out['residual_after']['rms']:.3f} m, revision {out['revision']}"
+        )
+        self.viewer.warn(out["warning"] or "")
+
+    def refresh(self) -> None:
+        edges = self.editor.edges(self.session_id)
+        options = [f"{e['k']}: {e['i']}–{e['j']} {e['kind']}" for e in edges] or [_NONE]
+        previous = self.edge.value
+        self.edge.options = options
+        self.edge.value = previous if previous in options else options[0]
+        count = len(self.viewer.workbench.current_poses(self.session_id))
+        self.scan_a.max = self.scan_b.max = max(count - 1, 0)
