@@ -1,0 +1,68 @@
+"""The 3D view's editing panels driven directly (no browser): replay, displacement colours, gizmo moves."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from app.server import create_app
+from slam6d.session import Session
+from tests.session_fixtures import write_corridor_scans
+
+
+class Click:
+    client_id = -1  # no browser: the journal records "anonymous"
+
+
+@pytest.fixture
+def viewer(tmp_path):
+    root = tmp_path / "sessions"
+    write_corridor_scans(root / "corridor" / "scans", scans=3, points=1500, odometry_noise=0.1)
+    Session.create(root / "corridor", "Corridor", "scans")
+    app = create_app(root)
+    view = app.state.viewers.get("corridor")
+    assert view.ready.wait(30) and view.error is None
+    yield view
+    app.state.viewers.stop_all()
+
+
+def panel(view, name: str):  # type: ignore[no-untyped-def]
+    return next(p for p in view.panels if type(p).__name__ == name)
+
+
+def test_replay_moves_the_scans_to_the_stored_run_poses(viewer):
+    workbench = viewer.workbench
+    from app.registration import registration_job
+
+    job = workbench.jobs.submit("corridor", "register", registration_job(workbench, "corridor", "ana", {}), "ana")
+    assert workbench.jobs.wait(job.id, 120).status == "done"
+    committed = workbench.current_poses("corridor")
+    replay = panel(viewer, "ReplayPanel")
+    replay.refresh()
+    assert replay.trace.value == job.result["trace"]
+    replay._load()
+    assert np.allclose(viewer.poses[2], workbench.state("corridor").session.poses(0)[2])  # back at the start
+    steps = 0
+    while replay._next():
+        steps += 1
+    assert steps == len(replay.frames) > 5
+    for shown, stored in zip(viewer.poses, committed, strict=True):
+        assert np.allclose(shown, stored, atol=1e-9)
+    assert "end of the run" in replay.status.content or "finished" in replay.status.content
+
+
+def test_gizmo_move_and_displacement_colours(viewer):
+    edit, loops = panel(viewer, "EditPanel"), panel(viewer, "LoopsPanel")
+    edit.scan_a.value = 1
+    edit.drag.value = True
+    edit._toggle_gizmo()
+    edit.gizmo.position = np.asarray(edit.gizmo.position) + np.array([0.0, 0.0, 1.5])
+    edit._move(Click(), refine=False)
+    session = viewer.state.session
+    assert session.revision == 1 and session.journal()[-1].kind == "manual_move"
+    assert "residuals jumped" in viewer.warnings.content  # the guardrail is on screen
+    loops.by_displacement.value = True
+    loops._colour()
+    assert set(viewer.highlight) == {0, 1, 2}
+    assert viewer.highlight[1] != viewer.highlight[0]  # the moved scan is coloured apart
+    assert "1.50 m" in loops.legend.content
