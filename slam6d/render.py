@@ -374,14 +374,12 @@ def _splat_kernel(
     n = points.shape[0]
     chunks, height, width = buffers.shape
     blocks = centres.shape[0]
-    empty = np.uint64(0xFFFFFFFFFFFFFFFF)
     r00, r01, r02, t0 = rot[0, 0], rot[0, 1], rot[0, 2], trans[0]
     r10, r11, r12, t1 = rot[1, 0], rot[1, 1], rot[1, 2], trans[1]
     r20, r21, r22, t2 = rot[2, 0], rot[2, 1], rot[2, 2], trans[2]
     max_depth = 4294967295.0 / 1.0e5
     for c in prange(chunks):
-        buf = buffers[c]
-        buf[:] = empty
+        buf = buffers[c]  # left empty by the previous frame's resolve pass
         for b in range(c, blocks, chunks):
             bx, by, bz = centres[b, 0], centres[b, 1], centres[b, 2]
             px = r00 * bx + r01 * by + r02 * bz + t0
@@ -407,7 +405,8 @@ def _splat_kernel(
                 inv = 1.0 / zc
                 u = fx * (r00 * x + r01 * y + r02 * z + t0) * inv + cx
                 v = fy * (r10 * x + r11 * y + r12 * z + t1) * inv + cy
-                key = (np.uint64(min(zc, max_depth) * 1.0e5) << np.uint64(32)) | np.uint64(i)
+                # via int64: x86 has no direct float -> uint64 conversion, the emulation costs a branch
+                key = (np.uint64(np.int64(min(zc, max_depth) * 1.0e5)) << np.uint64(32)) | np.uint64(i)
                 size = int(size_scale * inv + 0.5)
                 if size <= 1:
                     if 0.0 <= u < width and 0.0 <= v < height:
@@ -438,16 +437,20 @@ def _splat_kernel(
 @njit(parallel=True, fastmath=True, cache=True)
 def _resolve_kernel(buffers, pad, depth, log_depth, index):  # pragma: no cover
     """Per-pixel minimum over the chunk buffers -> depth (inf if empty), point index (-1), and log2 depth
-    into the interior of ``log_depth``, whose ``pad``-wide border stays empty so EDL needs no bounds checks."""
+    into the interior of ``log_depth``, whose ``pad``-wide border stays empty so EDL needs no bounds checks.
+    Leaves the chunk buffers empty again, so the splat pass needs no separate clearing sweep."""
     chunks, height, width = buffers.shape
     empty = np.uint64(0xFFFFFFFFFFFFFFFF)
     low_mask = np.uint64(0xFFFFFFFF)
     for r in prange(height):
         for c in range(width):
             best = buffers[0, r, c]
+            buffers[0, r, c] = empty  # cleared here, while in cache, for the next frame
             for k in range(1, chunks):
-                if buffers[k, r, c] < best:
-                    best = buffers[k, r, c]
+                key = buffers[k, r, c]
+                buffers[k, r, c] = empty
+                if key < best:
+                    best = key
             if best == empty:
                 depth[r, c] = np.inf
                 log_depth[r + pad, c + pad] = 1.0e30
@@ -459,20 +462,32 @@ def _resolve_kernel(buffers, pad, depth, log_depth, index):  # pragma: no cover
                 index[r, c] = np.int32(best & low_mask)
 
 
+# exp(-x) for x in [0, 24] in steps of 1/1024 (0 beyond): libm's exp per pixel cost more than all the rest
+# of shading, and rounding to the nearest step is off by at most 0.12 of a colour level.
+_EXP_STEPS = 1024.0
+_EXP_LUT = np.exp(-np.arange(int(24 * _EXP_STEPS) + 1) / _EXP_STEPS).astype(np.float32)
+_EXP_LUT[-1] = 0.0
+
+
 @njit(parallel=True, fastmath=True, cache=True)
 def _shade_kernel(
-    depth, log_depth, pad, index, colors, background, edl_strength, edl_offsets, fog_distance, image
+    depth, log_depth, pad, index, colors, background, edl_strength, edl_offsets, fog_distance, exp_lut, steps, image
 ):  # pragma: no cover
     """Colour every pixel: point colour x EDL factor, faded towards the background by depth fog.
 
     EDL response of a pixel = mean over its ring of neighbours of how much farther (in log depth)
     it is than each; only pixels behind a neighbour darken, which outlines edges and creases.
     Computed a row at a time over the padded log-depth image so the inner loops vectorise.
+    Both exponentials (EDL factor, fog) come from ``exp_lut`` (exp(-k / steps) at k).
     """
     height, width = depth.shape
     neighbours = edl_offsets.shape[0]
-    b0, b1, b2 = background[0], background[1], background[2]
-    edl_scale = edl_strength / neighbours
+    b0, b1, b2 = np.float32(background[0]), np.float32(background[1]), np.float32(background[2])
+    last = exp_lut.shape[0] - 1
+    beyond = np.float32(last)  # arguments are clamped as floats: huge ones must not overflow int conversion
+    edl_q = np.float32(edl_strength / neighbours * steps)
+    fog_q = np.float32(steps / fog_distance) if fog_distance > 0.0 else np.float32(0.0)
+    half, top = np.float32(0.5), np.float32(255.0)
     for r in prange(height):
         response = np.zeros(width, dtype=np.float32)
         if edl_strength > 0.0:
@@ -490,13 +505,13 @@ def _shade_kernel(
                 image[r, c, 1] = np.uint8(b1)
                 image[r, c, 2] = np.uint8(b2)
                 continue
-            shade = math.exp(-response[c] * edl_scale) if edl_strength > 0.0 else 1.0
-            fog = math.exp(-depth[r, c] / fog_distance) if fog_distance > 0.0 else 1.0
+            shade = exp_lut[int(min(response[c] * edl_q + half, beyond))]
+            fog = exp_lut[int(min(depth[r, c] * fog_q + half, beyond))]
             k0 = shade * fog
-            k1 = 1.0 - fog
-            image[r, c, 0] = np.uint8(min(255.0, colors[i, 0] * k0 + b0 * k1 + 0.5))
-            image[r, c, 1] = np.uint8(min(255.0, colors[i, 1] * k0 + b1 * k1 + 0.5))
-            image[r, c, 2] = np.uint8(min(255.0, colors[i, 2] * k0 + b2 * k1 + 0.5))
+            k1 = np.float32(1.0) - fog
+            image[r, c, 0] = np.uint8(min(top, colors[i, 0] * k0 + b0 * k1 + half))
+            image[r, c, 1] = np.uint8(min(top, colors[i, 1] * k0 + b1 * k1 + half))
+            image[r, c, 2] = np.uint8(min(top, colors[i, 2] * k0 + b2 * k1 + half))
 
 
 def _frustum_planes(camera: Camera, margin: float) -> NDArray[np.float64]:
@@ -558,7 +573,7 @@ class Renderer:
         self._fog = fog if self.options.shading in ("depth", "edl+depth") else 0.0
         self._edl = self.options.edl_strength if self.options.shading in ("edl", "edl+depth") else 0.0
         chunks = max(1, numba.get_num_threads())
-        self._buffers = np.empty((chunks, self.height, self.width), dtype=np.uint64)
+        self._buffers = np.full((chunks, self.height, self.width), _EMPTY_KEY, dtype=np.uint64)
         self.depth = np.empty((self.height, self.width), dtype=np.float32)
         self.index = np.empty((self.height, self.width), dtype=np.int32)
         self._pad = int(self.options.edl_radius)
@@ -620,6 +635,8 @@ class Renderer:
             float(self._edl),
             self._edl_offsets,
             float(self._fog),
+            _EXP_LUT,
+            _EXP_STEPS,
             image,
         )
         return image
