@@ -1,21 +1,37 @@
-"""Whole-trajectory benchmark: `slam6d run` stages on a simulated loop and on BALM hall.
+"""Whole-trajectory benchmark: `slam6d run` beside peers from PyPI on the same input.
 
-Prints wall times, ATE against ground truth (simulated), RPE against the reference and ICP
-self-consistency on far-apart overlapping scan pairs (BALM hall, started from drifted odometry
-made by :func:`slam6d.drift.drifted_odometry`). Peers (small_gicp, open3d, KISS-ICP) are not
-wired in yet. Run: ``.venv/bin/python benchmarks/trajectory.py [--balm] [--sim DIR]``.
+Cases:
+
+* ``--sim DIR``: a simulated loop written by ``--make-sim DIR`` (46 scans of ~92k points, rotating
+  360° x 70° scanner, ~111 m loop, odometry off by ~1.5 m, ASCII uos files). slam6d is timed as the
+  command line a user runs (``slam6d run``: start-up, reading the files, writing the results); the
+  peers get the clouds already read, in memory. Quality: ATE against the simulator's ground truth.
+* ``--balm``: BALM hall (89 real scans) from drifted odometry (:func:`slam6d.drift.drifted_odometry`,
+  seed 1). Its reference drifts, so quality is RPE against it and self-consistency: ICP started from
+  the final poses between far-apart overlapping scans should barely move them.
+
+Peers: small_gicp GICP chained from the odometry, the same plus a gtsam pose graph over loop edges
+(scans within 10 m verified by GICP), open3d multiway registration (pairwise point-to-plane ICP on
+consecutive and loop pairs, then its pose-graph optimisation) and KISS-ICP (odometry increments as
+its motion prior). ``--relax-graph`` compares our pose-graph solver with gtsam on a 10,000-pose graph.
+
+Run: ``.venv/bin/python benchmarks/trajectory.py --make-sim /tmp/loop --sim /tmp/loop --balm --peers``.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
+import subprocess
+import sys
 import time
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
 
 from slam6d.drift import drifted_odometry
-from slam6d.geometry import UOS, invert, transform_points
+from slam6d.geometry import UOS, Matrix, invert, make_pose, transform_points
 from slam6d.icp import ICPConfig, ModelIndex, icp
 from slam6d.io.poses import read_kitti_poses
 from slam6d.io.registry import read_sequence
@@ -23,8 +39,33 @@ from slam6d.metrics import absolute_trajectory_error, relative_pose_error
 from slam6d.octree import reduce_points
 from slam6d.pipeline import Pipeline, PipelineConfig
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+ROOT = Path(__file__).resolve().parents[1]
+DATA = Path(os.environ.get("SLAM6D_DATA", ROOT.parent / "shared" / "data"))
 CHECK_PAIRS = ((0, 88), (10, 88), (0, 60), (57, 88), (5, 80), (20, 70), (30, 60))
+LOOP_RADIUS = 10.0  # metres: peers' loop candidates
+
+
+def load() -> str:
+    return "load " + " ".join(f"{v:.1f}" for v in os.getloadavg())
+
+
+# ---------------------------------------------------------------- inputs
+
+
+def make_simulated_loop(directory: Path) -> None:
+    """The benchmark's loop: 46 stops on a ~111 m loop, rotating scanner 360° x 70°, ~92k points per scan."""
+    from slam6d.simulate import SimulationConfig, simulate_session
+
+    config = SimulationConfig(
+        seed=0,
+        scans=46,
+        points_per_scan=136_000,
+        loop_length=39.0,
+        loop_width=20.0,
+        elevation_min_deg=-30.0,
+        elevation_max_deg=40.0,
+    )
+    simulate_session(directory, config)
 
 
 def self_consistency(sequence, poses, pairs=CHECK_PAIRS) -> dict[tuple[int, int], float]:  # type: ignore[no-untyped-def]
@@ -41,47 +82,270 @@ def self_consistency(sequence, poses, pairs=CHECK_PAIRS) -> dict[tuple[int, int]
     return moved
 
 
-def balm() -> None:
-    began = time.perf_counter()
+def balm_sequence():  # type: ignore[no-untyped-def]
     sequence = read_sequence(DATA / "balm_hall" / "velodyne_style_bin", "kitti")
     reference = read_kitti_poses(DATA / "balm_hall" / "poses_subset_kitti3x4.txt")
     for scan, pose in zip(sequence, drifted_odometry(reference, seed=1), strict=True):
-        scan.pose = pose
-        scan.has_pose = True
-    read = time.perf_counter() - began
-    pipeline = Pipeline(sequence, PipelineConfig())
-    report = pipeline.run()
-    total = time.perf_counter() - began
-    rpe = relative_pose_error(pipeline.poses, reference)
-    moved = self_consistency(sequence, pipeline.poses)
-    print(f"balm_hall: read {read:.2f}s, total {total:.2f}s, stages {report.stage_seconds}")
-    print(f"  loops closed {report.loops_closed}, chi2 {report.chi2_before} -> {report.chi2_after}")
-    print(f"  RPE {100 * rpe.translation_mean:.2f} cm / {rpe.rotation_mean_deg:.3f} deg (mean)")
-    print("  self-consistency (cm): " + ", ".join(f"{i}-{j} {100 * v:.2f}" for (i, j), v in moved.items()))
-    print(f"  mean {100 * np.mean(list(moved.values())):.2f} cm")
+        scan.pose, scan.has_pose = pose, True
+    return sequence, reference
 
 
-def simulated(directory: Path) -> None:
-    began = time.perf_counter()
-    sequence = read_sequence(directory, "uos")
-    pipeline = Pipeline(sequence, PipelineConfig())
-    report = pipeline.run()
-    total = time.perf_counter() - began
+# ---------------------------------------------------------------- peers (clouds canonical, metres)
+
+Peer = Callable[[Sequence[np.ndarray], Sequence[Matrix]], list[Matrix]]
+
+
+def _gicp(target, source, init: Matrix, threads: int = 2):  # type: ignore[no-untyped-def]
+    import small_gicp
+
+    return small_gicp.align(target[0], source[0], target[1], init_T_target_source=init, num_threads=threads)
+
+
+def _gicp_clouds(clouds: Sequence[np.ndarray]) -> list:  # type: ignore[type-arg]
+    import small_gicp
+
+    return [small_gicp.preprocess_points(c, downsampling_resolution=0.25, num_threads=2) for c in clouds]
+
+
+def small_gicp_chained(clouds: Sequence[np.ndarray], odometry: Sequence[Matrix]) -> list[Matrix]:
+    prepared = _gicp_clouds(clouds)
+    poses = [np.array(odometry[0])]
+    for k in range(1, len(clouds)):
+        init = invert(odometry[k - 1]) @ odometry[k]
+        poses.append(poses[-1] @ _gicp(prepared[k - 1], prepared[k], init).T_target_source)
+    return poses
+
+
+def _loop_candidates(poses: Sequence[Matrix], radius: float = LOOP_RADIUS, gap: int = 10) -> list[tuple[int, int]]:
+    positions = np.array([p[:3, 3] for p in poses])
+    found = []
+    for j in range(len(poses)):
+        for i in range(0, j - gap):
+            if np.linalg.norm(positions[i] - positions[j]) <= radius:
+                found.append((i, j))
+    return found
+
+
+def small_gicp_gtsam(clouds: Sequence[np.ndarray], odometry: Sequence[Matrix]) -> list[Matrix]:
+    import gtsam
+
+    prepared = _gicp_clouds(clouds)
+    chained = [np.array(odometry[0])]
+    graph = gtsam.NonlinearFactorGraph()
+    odo_noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([0.002] * 3 + [0.01] * 3))
+    loop_noise = gtsam.noiseModel.Robust.Create(
+        gtsam.noiseModel.mEstimator.Cauchy.Create(1.0),
+        gtsam.noiseModel.Diagonal.Sigmas(np.array([0.004] * 3 + [0.02] * 3)),
+    )
+    graph.add(gtsam.PriorFactorPose3(0, gtsam.Pose3(odometry[0]), gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)))
+    for k in range(1, len(clouds)):
+        rel = _gicp(prepared[k - 1], prepared[k], invert(odometry[k - 1]) @ odometry[k]).T_target_source
+        chained.append(chained[-1] @ rel)
+        graph.add(gtsam.BetweenFactorPose3(k - 1, k, gtsam.Pose3(rel), odo_noise))
+    for i, j in _loop_candidates(chained):
+        result = _gicp(prepared[i], prepared[j], invert(chained[i]) @ chained[j])
+        if result.converged and result.num_inliers > 0.3 * prepared[j][0].size():
+            graph.add(gtsam.BetweenFactorPose3(i, j, gtsam.Pose3(result.T_target_source), loop_noise))
+    values = gtsam.Values()
+    for k, pose in enumerate(chained):
+        values.insert(k, gtsam.Pose3(pose))
+    optimised = gtsam.LevenbergMarquardtOptimizer(graph, values).optimize()
+    return [optimised.atPose3(k).matrix() for k in range(len(clouds))]
+
+
+def open3d_multiway(clouds: Sequence[np.ndarray], odometry: Sequence[Matrix]) -> list[Matrix]:
+    import open3d as o3d
+
+    reg = o3d.pipelines.registration
+    voxel = 0.1
+    pcds = []
+    for c in clouds:
+        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(c)).voxel_down_sample(voxel)
+        pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2 * voxel, max_nn=30))
+        pcds.append(pcd)
+
+    def pair(i: int, j: int, init: Matrix) -> tuple[Matrix, np.ndarray, float]:
+        # open3d's convention: transformation maps source (j) into target (i)
+        result = reg.registration_icp(pcds[j], pcds[i], 0.3, init, reg.TransformationEstimationPointToPlane())
+        info = reg.get_information_matrix_from_point_clouds(pcds[j], pcds[i], 0.3, result.transformation)
+        return np.asarray(result.transformation), info, result.fitness
+
+    graph = reg.PoseGraph()
+    graph.nodes.append(reg.PoseGraphNode(np.array(odometry[0])))
+    chained = [np.array(odometry[0])]
+    for k in range(1, len(clouds)):
+        rel, info, _ = pair(k - 1, k, invert(odometry[k - 1]) @ odometry[k])
+        chained.append(chained[-1] @ rel)
+        graph.nodes.append(reg.PoseGraphNode(chained[-1]))
+        graph.edges.append(reg.PoseGraphEdge(k, k - 1, rel, info, uncertain=False))
+    for i, j in _loop_candidates(chained):
+        rel, info, fitness = pair(i, j, invert(chained[i]) @ chained[j])
+        if fitness > 0.3:
+            graph.edges.append(reg.PoseGraphEdge(j, i, rel, info, uncertain=True))
+    option = reg.GlobalOptimizationOption(max_correspondence_distance=0.3, edge_prune_threshold=0.25, reference_node=0)
+    reg.global_optimization(
+        graph, reg.GlobalOptimizationLevenbergMarquardt(), reg.GlobalOptimizationConvergenceCriteria(), option
+    )
+    return [np.asarray(node.pose) for node in graph.nodes]
+
+
+def kiss_icp(clouds: Sequence[np.ndarray], odometry: Sequence[Matrix]) -> list[Matrix]:
+    from kiss_icp.config import KISSConfig
+    from kiss_icp.kiss_icp import KissICP
+
+    config = KISSConfig()
+    config.data.max_range = 100.0
+    config.data.min_range = 0.5
+    config.data.deskew = False
+    config.mapping.voxel_size = 0.5
+    odom = KissICP(config)
+    odom.last_pose = np.array(odometry[0])
+    poses = []
+    for k, cloud in enumerate(clouds):
+        if k:
+            odom.last_delta = invert(odometry[k - 1]) @ odometry[k]  # the odometry is the motion prior
+        odom.register_frame(np.asarray(cloud, dtype=np.float64), np.zeros(len(cloud)))
+        poses.append(np.array(odom.last_pose))
+    return poses
+
+
+PEERS: dict[str, Peer] = {
+    "small_gicp + gtsam (loops <= 10 m)": small_gicp_gtsam,
+    "open3d multiway": open3d_multiway,
+    "small_gicp chained": small_gicp_chained,
+    "KISS-ICP (odometry prior)": kiss_icp,
+}
+
+
+def run_peers(sequence, quality: Callable[[list[Matrix]], str], only: str | None) -> None:  # type: ignore[no-untyped-def]
+    clouds = [scan.points for scan in sequence]
+    odometry = [scan.pose for scan in sequence]
+    for name, peer in PEERS.items():
+        if only and only not in name:
+            continue
+        began = time.perf_counter()
+        try:
+            poses = peer(clouds, odometry)
+        except Exception as exc:  # a peer failing must not hide the others
+            print(f"  {name}: failed: {exc}")
+            continue
+        print(f"  {name}: {quality(poses)}, {time.perf_counter() - began:.1f} s ({load()})")
+
+
+# ---------------------------------------------------------------- cases
+
+
+def simulated(directory: Path, peers: bool, only: str | None, method: str) -> None:
     truth = [UOS.pose_to_canonical(p) for p in read_kitti_poses(directory / "ground_truth_kitti.txt")]
-    ate = absolute_trajectory_error(pipeline.poses, truth)
-    print(f"simulated {directory}: {len(sequence)} scans, total {total:.2f}s, stages {report.stage_seconds}")
-    print(f"  ATE {100 * ate.rmse:.2f} cm, loops closed {report.loops_closed}")
+    out = directory.parent / (directory.name + "_out")
+    began = time.perf_counter()
+    command = [sys.executable, "-m", "slam6d.cli", "run", str(directory), "--format", "uos", "--out", str(out)]
+    done = subprocess.run([*command, "--method", method], capture_output=True, text=True, check=False)
+    wall = time.perf_counter() - began
+    if done.returncode != 0:
+        print(done.stdout, done.stderr)
+        return
+    estimate = [UOS.pose_to_canonical(p) for p in read_kitti_poses(out / "poses_kitti.txt")]
+    ate = absolute_trajectory_error(estimate, truth)
+    times = [line for line in done.stdout.splitlines() if line.startswith("times")]
+    print(f"simulated loop {directory} ({len(truth)} scans)")
+    print(f"  slam6d run ({method}): ATE {100 * ate.rmse:.2f} cm, {wall:.1f} s wall incl. start-up ({load()})")
+    print(f"    {times[0] if times else ''}")
+    if peers:
+        sequence = read_sequence(directory, "uos")
+
+        def quality(poses: list[Matrix]) -> str:
+            return f"ATE {100 * absolute_trajectory_error(poses, truth).rmse:.2f} cm"
+
+        run_peers(sequence, quality, only)
+
+
+def balm(peers: bool, only: str | None, method: str) -> None:
+    sequence, reference = balm_sequence()
+
+    def quality(poses: list[Matrix]) -> str:
+        moved = self_consistency(sequence, poses)
+        rpe = relative_pose_error(poses, reference)
+        pairs = ", ".join(f"{i}-{j} {100 * v:.1f}" for (i, j), v in moved.items())
+        return (
+            f"self-consistency {100 * np.mean(list(moved.values())):.2f} cm ({pairs}), "
+            f"RPE {100 * rpe.translation_mean:.2f} cm / {rpe.rotation_mean_deg:.3f} deg"
+        )
+
+    print("balm_hall (89 scans, drifted odometry seed 1)")
+    began = time.perf_counter()
+    config = PipelineConfig(icp=ICPConfig(method=method))
+    pipeline = Pipeline(sequence, config)
+    report = pipeline.run()
+    wall = time.perf_counter() - began
+    stages = ", ".join(f"{k} {v:.1f}" for k, v in report.stage_seconds.items())
+    print(f"  slam6d ({method}): {quality(pipeline.poses)}, {wall:.1f} s ({load()}); stages {stages}")
+    if peers:
+        run_peers(sequence, quality, only)
+
+
+def relax_graph(count: int = 10_000, loop_fraction: float = 0.05) -> None:
+    """Our pose-graph solver and gtsam on the same noisy 10,000-pose graph with random loop edges."""
+    import gtsam
+
+    from slam6d.posegraph import PoseEdge, optimize_pose_graph, so3_exp
+
+    rng = np.random.default_rng(0)
+    truth = [np.eye(4)]
+    for _ in range(count - 1):
+        truth.append(
+            truth[-1] @ make_pose(so3_exp(rng.normal(0, 0.05, 3)), np.array([1.0, 0.0, 0.0]) + rng.normal(0, 0.05, 3))
+        )
+    info = np.diag([1 / 0.01**2] * 3 + [1 / 0.002**2] * 3)
+
+    def noisy(i: int, j: int) -> Matrix:
+        return invert(truth[i]) @ truth[j] @ make_pose(so3_exp(rng.normal(0, 0.002, 3)), rng.normal(0, 0.01, 3))
+
+    edges = [PoseEdge(k, k + 1, noisy(k, k + 1), info) for k in range(count - 1)]
+    for _ in range(int(loop_fraction * count)):
+        i, j = sorted(rng.choice(count, 2, replace=False))
+        edges.append(PoseEdge(int(i), int(j), noisy(int(i), int(j)), info))
+    start = [truth[0]]
+    for edge in edges[: count - 1]:
+        start.append(start[-1] @ edge.measurement)
+    began = time.perf_counter()
+    ours = optimize_pose_graph(start, edges, fixed=[0])
+    ours_s = time.perf_counter() - began
+    graph = gtsam.NonlinearFactorGraph()
+    noise = gtsam.noiseModel.Gaussian.Information(info[[3, 4, 5, 0, 1, 2]][:, [3, 4, 5, 0, 1, 2]])
+    graph.add(gtsam.PriorFactorPose3(0, gtsam.Pose3(start[0]), gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)))
+    for e in edges:
+        graph.add(gtsam.BetweenFactorPose3(e.i, e.j, gtsam.Pose3(e.measurement), noise))
+    values = gtsam.Values()
+    for k, pose in enumerate(start):
+        values.insert(k, gtsam.Pose3(pose))
+    began = time.perf_counter()
+    params = gtsam.GaussNewtonParams()
+    result = gtsam.GaussNewtonOptimizer(graph, values, params).optimize()
+    gtsam_s = time.perf_counter() - began
+    print(f"pose graph: {count} poses, {len(edges) - count + 1} random loop edges ({load()})")
+    print(f"  slam6d.posegraph: {ours_s:.2f} s, {ours.iterations} iterations, chi2 {ours.residual_after:.1f}")
+    print(f"  gtsam Gauss-Newton: {gtsam_s:.2f} s, error {2 * graph.error(result):.1f} (= chi2)")
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser()
-    parser.add_argument("--balm", action="store_true")
-    parser.add_argument("--sim", type=Path)
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--make-sim", type=Path, help="write the benchmark's simulated loop here first")
+    parser.add_argument("--sim", type=Path, help="simulated loop folder (uos) with ground_truth_kitti.txt")
+    parser.add_argument("--balm", action="store_true", help="BALM hall from drifted odometry")
+    parser.add_argument("--peers", action="store_true", help="also run small_gicp, gtsam, open3d, KISS-ICP")
+    parser.add_argument("--only", help="run only the peers whose name contains this text")
+    parser.add_argument("--method", default="point_to_plane", help="slam6d ICP method")
+    parser.add_argument("--relax-graph", action="store_true", help="10,000-pose graph: ours vs gtsam")
     args = parser.parse_args()
+    if args.make_sim:
+        make_simulated_loop(args.make_sim)
     if args.sim:
-        simulated(args.sim)
+        simulated(args.sim, args.peers, args.only, args.method)
     if args.balm:
-        balm()
+        balm(args.peers, args.only, args.method)
+    if args.relax_graph:
+        relax_graph()
 
 
 if __name__ == "__main__":

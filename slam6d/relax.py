@@ -25,10 +25,13 @@ from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
 from numpy.typing import NDArray
 
+from slam6d import nn
 from slam6d.errors import RegistrationError, Slam6dError
-from slam6d.geometry import Matrix, invert, transform_points
+from slam6d.geometry import Matrix, invert, make_pose, transform_points
 from slam6d.icp import ICPConfig, ModelIndex, correspondences, icp
 from slam6d.posegraph import (
     PoseEdge,
@@ -37,6 +40,7 @@ from slam6d.posegraph import (
     check_connected,
     optimize_pose_graph,
     point_pair_information,
+    so3_exp,
 )
 
 FloatArray = NDArray[np.float64]
@@ -68,9 +72,12 @@ class RelaxationConfig:
     move_threshold: float = 0.005  # metres: re-queue neighbours when a scan moves more (simultaneous matching)
     max_rounds: int = 10  # queue pops per scan (simultaneous) / re-matching rounds (LUM)
     lum_icp_iterations: int = 8
-    max_neighbours: int = 6  # strongest neighbours kept per scan for LUM edges
-    edge_points: int = 4000  # data points per edge ICP (evenly thinned), keeps large graphs affordable
+    max_neighbours: int = 0  # strongest neighbours kept per scan for LUM edges; 0 = every neighbour pair
+    edge_points: int = 4000  # data points per edge (evenly thinned), at most
+    round_points: int = 400_000  # data points per LUM round over all edges: many edges get fewer points each
     tolerance: float = 0.0005  # metres: stop LUM rounds when no scan moves more
+    damping: float = 1e-3  # Levenberg damping of the joint LUM step, relative to the diagonal
+    robust_scale: float = 0.02  # metres: final Cauchy scale of the LUM point-to-plane residuals (0 = least squares)
 
 
 @dataclass
@@ -128,10 +135,17 @@ class ScanModels:
 
 
 class UnionIndex(ModelIndex):
-    """Several scans placed in the world as one model (a metascan, or a scan's neighbours)."""
+    """Several scans placed in the world as one model (a metascan, or a scan's neighbours).
+
+    Built from the members' own plane samples and normals (estimated once per scan, in its own
+    frame, and only rotated here): a union is rebuilt for every scan registered against it, and
+    re-estimating normals over the union each time cost several times more than the matching.
+    Normals from one scan's points are also not blurred by a misalignment between the members.
+    """
 
     def __init__(self, models: ScanModels, members: Sequence[int], poses: Sequence[Matrix]) -> None:
         self.members = list(members)
+        parts = [models.index(k) for k in self.members]
         super().__init__(
             np.concatenate([transform_points(poses[k], models.points[k]) for k in self.members]),
             normal_neighbours=models.config.normal_neighbours,
@@ -139,6 +153,32 @@ class UnionIndex(ModelIndex):
             backend=models.config.nn_backend,
             threads=models.config.threads,
         )
+        offsets = np.cumsum([0] + [len(models.points[k]) for k in self.members])
+        samples, normals, usable = [], [], []
+        for k, part in zip(self.members, parts, strict=True):
+            points, part_normals, part_usable = part.plane_normals()
+            samples.append(transform_points(poses[k], points))
+            normals.append(part_normals @ np.asarray(poses[k])[:3, :3].T)
+            usable.append(part_usable)
+        self._sample_indices = np.concatenate([o + p.plane_indices for o, p in zip(offsets, parts, strict=False)])
+        self._sample_normals = np.concatenate(normals)
+        self._sample_usable = np.concatenate(usable)
+        self._sample_index = nn.build_index(np.concatenate(samples), self.backend, self.threads)
+
+    @property
+    def plane_indices(self) -> NDArray[np.int64]:
+        return self._sample_indices
+
+    @property
+    def plane_index(self) -> nn.NeighbourIndex:
+        return self._sample_index
+
+    def plane_normals_for(self, sample: NDArray[np.int64]) -> tuple[FloatArray, NDArray[np.bool_]]:
+        sample = np.asarray(sample, dtype=np.int64)
+        return self._sample_normals[sample], self._sample_usable[sample]
+
+    def plane_normals(self) -> tuple[FloatArray, FloatArray, NDArray[np.bool_]]:
+        return self._sample_index.points, self._sample_normals, self._sample_usable
 
 
 def neighbour_pairs(
@@ -146,7 +186,7 @@ def neighbour_pairs(
     poses: Sequence[Matrix],
     min_pairs: int = 250,
     members: Iterable[int] | None = None,
-    sample: int = 2000,
+    sample: int = 400,
 ) -> list[NeighbourPair]:
     """Scan pairs with more than ``min_pairs`` closest-point pairs at the current poses.
 
@@ -172,7 +212,7 @@ def neighbour_pairs(
 
 
 def pair_residual(
-    models: ScanModels, poses: Sequence[Matrix], pairs: Sequence[NeighbourPair], sample: int = 2000
+    models: ScanModels, poses: Sequence[Matrix], pairs: Sequence[NeighbourPair], sample: int = 500
 ) -> float:
     """RMS closest-point distance over all neighbour pairs (pairs within the ICP max distance), metres."""
     total, count = 0.0, 0
@@ -294,7 +334,12 @@ def lum(
 
 
 def _strongest(pairs: Sequence[NeighbourPair], count: int, keep: int) -> list[NeighbourPair]:
-    """Each scan's ``keep`` strongest neighbour pairs, plus every consecutive pair (the trajectory's spine)."""
+    """Each scan's ``keep`` strongest neighbour pairs, plus every consecutive pair (the trajectory's spine).
+
+    ``keep`` <= 0 keeps every pair: the long-range pairs are what makes a map globally consistent.
+    """
+    if keep <= 0:
+        return sorted(pairs, key=lambda p: (p.i, p.j))
     by_scan: list[list[NeighbourPair]] = [[] for _ in range(count)]
     for pair in pairs:
         by_scan[pair.i].append(pair)
@@ -329,6 +374,102 @@ def match_edge(models: ScanModels, poses: Sequence[Matrix], pair: NeighbourPair,
     return PoseEdge(pair.i, pair.j, result.transform, info)
 
 
+def _pair_system(
+    model: ModelIndex, data: FloatArray, relative: Matrix, max_distance: float, robust_scale: float = 0.0
+) -> tuple[FloatArray, FloatArray, float, int]:
+    """Normal-equation blocks of one neighbour pair's point-to-plane residuals at the current poses.
+
+    Data points ``p`` of scan j are placed in scan i's frame by ``relative`` = inv(X_i) X_j and
+    paired with the closest point ``m`` (normal ``n``) of scan i's plane sample. With both poses
+    perturbed on the right, X <- X Exp([ρ, φ]), the residual r = n·(q - m), q = relative·p, moves by
+    J_i = [-n, -(q × n)] and J_j = [R_ij^T n, p × R_ij^T n]. Returns the 12x12 block A^T A (order
+    i then j), A^T W r, the sum of r² and the pair count. With ``robust_scale`` c > 0 each pair is
+    weighted by Cauchy's w = 1 / (1 + (r/c)²) (iteratively reweighted least squares): pairs of
+    different surfaces that happen to lie within the max distance then barely pull.
+    """
+    q = transform_points(relative, data)
+    _, idx = model.plane_index.nearest(q, max_distance)
+    found = np.flatnonzero(idx >= 0)
+    _, all_normals, all_usable = model.plane_normals()  # every sample normal at once: one kernel call per scan
+    normals, usable = all_normals[idx[found]], all_usable[idx[found]]
+    found, normals = found[usable], normals[usable]
+    if len(found) == 0:
+        return np.zeros((12, 12)), np.zeros(12), 0.0, 0
+    q, p = q[found], data[found]
+    m = model.plane_index.points[idx[found]]
+    residual = np.einsum("ij,ij->i", q - m, normals)
+    n_j = normals @ relative[:3, :3]  # rows: R_ij^T n
+    jac = np.empty((len(found), 12))
+    jac[:, :3] = -normals
+    jac[:, 3:6] = -np.cross(q, normals)
+    jac[:, 6:9] = n_j
+    jac[:, 9:] = np.cross(p, n_j)
+    weight = 1.0 / (1.0 + (residual / robust_scale) ** 2) if robust_scale > 0 else np.ones(len(found))
+    weighted = jac * weight[:, None]
+    return weighted.T @ jac, weighted.T @ residual, float(residual @ residual), len(found)
+
+
+def _joint_step(
+    models: ScanModels,
+    current: list[Matrix],
+    graph_pairs: Sequence[NeighbourPair],
+    free: dict[int, int],
+    config: RelaxationConfig,
+    robust_scale: float,
+) -> tuple[dict[int, Matrix], float, int]:
+    """One Gauss-Newton step of all scans at once over the current closest-point pairs (LUM's round).
+
+    Returns the new poses of the free scans, the sum of squared residuals before the step and the
+    number of point pairs. A little Levenberg damping keeps directions no pair constrains (a scan
+    seeing one flat wall) from running away.
+    """
+    size = 6 * len(free)
+    rows: list[NDArray[np.int64]] = []
+    cols: list[NDArray[np.int64]] = []
+    values: list[FloatArray] = []
+    gradient = np.zeros(size)
+    total, count = 0.0, 0
+    block = np.arange(6)
+    per_edge = int(np.clip(config.round_points // max(len(graph_pairs), 1), 100, config.edge_points))
+    for pair in graph_pairs:
+        data = models.thinned(pair.j, per_edge)
+        relative = invert(current[pair.i]) @ current[pair.j]
+        h, g, sq, n = _pair_system(models.index(pair.i), data, relative, models.config.max_distance, robust_scale)
+        total += sq
+        count += n
+        if n == 0:
+            continue
+        slots = [(0, free.get(pair.i)), (6, free.get(pair.j))]
+        for a_off, a_var in slots:
+            if a_var is None:
+                continue
+            gradient[6 * a_var + block] += g[a_off : a_off + 6]
+            for b_off, b_var in slots:
+                if b_var is None:
+                    continue
+                r, c = np.meshgrid(6 * a_var + block, 6 * b_var + block, indexing="ij")
+                rows.append(r.ravel())
+                cols.append(c.ravel())
+                values.append(h[a_off : a_off + 6, b_off : b_off + 6].ravel())
+    if not values:
+        raise RelaxationError("LUM: no neighbour pair has point pairs with usable normals at the current poses")
+    hessian = sp.csc_matrix((np.concatenate(values), (np.concatenate(rows), np.concatenate(cols))), shape=(size, size))
+    diagonal = hessian.diagonal()
+    damped = hessian + sp.diags(config.damping * diagonal + 1e-9 * max(float(diagonal.max()), 1.0))
+    try:
+        step = spla.splu(damped.tocsc(), permc_spec="MMD_AT_PLUS_A").solve(-gradient)
+    except RuntimeError as exc:
+        raise RelaxationError(f"LUM: the joint normal equations are singular ({exc})") from exc
+    if not np.isfinite(step).all():
+        raise RelaxationError("LUM: the joint solve produced a non-finite step (ill-conditioned neighbour graph)")
+    delta = step.reshape(-1, 6)
+    moved = {}
+    for k, var in free.items():
+        motion = make_pose(so3_exp(delta[var, 3:]), delta[var, :3])
+        moved[k] = current[k] @ motion
+    return moved, total, count
+
+
 def lum_relaxation(
     models: ScanModels,
     poses: Sequence[Matrix],
@@ -338,7 +479,7 @@ def lum_relaxation(
     progress: Progress | None = None,
     cancel: Callable[[], bool] | None = None,
 ) -> RelaxationResult:
-    """LUM: match all neighbour pairs, solve the pose graph, repeat from the new poses (module docstring)."""
+    """LUM: all scans solved at once from the closest-point pairs of all neighbour pairs (module docstring)."""
     began = time.perf_counter()
     before = [np.array(p) for p in poses]
     current = [np.array(p) for p in poses]
@@ -349,41 +490,35 @@ def lum_relaxation(
     outside = set(range(len(models))) - set(chosen)
     check_connected(len(models), [(p.i, p.j) for p in graph_pairs], fixed_set | outside)
     residual_before = pair_residual(models, current, pairs)
+    free = {k: n for n, k in enumerate(k for k in chosen if k not in fixed_set)}
     chi2_before: float | None = None
     chi2_after: float | None = None
     rounds = 0
-    index_of = {k: n for n, k in enumerate(chosen)}
     for rounds in range(1, config.max_rounds + 1):
-        edges = []
-        for pair in graph_pairs:
-            _check_cancel(cancel)
-            try:
-                edge = match_edge(models, current, pair, config)
-            except RegistrationError as exc:
-                raise RelaxationError(f"LUM: scans {pair.i} and {pair.j} no longer match: {exc}") from exc
-            edges.append(PoseEdge(index_of[edge.i], index_of[edge.j], edge.measurement, edge.information))
-        result = optimize_pose_graph(
-            [current[k] for k in chosen], edges, fixed=[index_of[f] for f in fixed_set], max_iterations=20
-        )
+        _check_cancel(cancel)
+        # graduated robustness: a tight kernel from the start would ignore exactly the centimetre
+        # misalignments the relaxation is meant to remove, so the scale halves from the max distance
+        scale = config.robust_scale
+        if scale > 0:
+            scale = max(scale, 0.5**rounds * models.config.max_distance)
+        moved_poses, chi2, _ = _joint_step(models, current, graph_pairs, free, config, scale)
         if chi2_before is None:
-            chi2_before = result.residual_before
-        chi2_after = result.residual_after
+            chi2_before = chi2
+        chi2_after = chi2
         moved = []
         largest = 0.0
-        for n, k in enumerate(chosen):
+        for k, pose in moved_poses.items():
             sample = models.thinned(k, 200)
             shift = float(
-                np.linalg.norm(
-                    transform_points(result.poses[n], sample) - transform_points(current[k], sample), axis=1
-                ).max()
+                np.linalg.norm(transform_points(pose, sample) - transform_points(current[k], sample), axis=1).max()
             )
             largest = max(largest, shift)
             if shift > config.tolerance:
                 moved.append(k)
-            current[k] = result.poses[n]
+            current[k] = pose
         if progress is not None:
-            progress(rounds, chi2_after, moved)
-        if largest <= config.tolerance:
+            progress(rounds, chi2, moved)
+        if largest <= config.tolerance and scale <= config.robust_scale:
             break
     after = carry_forward(before, current, chosen)
     return RelaxationResult(

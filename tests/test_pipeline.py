@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from slam6d.errors import RegistrationError
-from slam6d.geometry import UOS, pose_difference
+from slam6d.geometry import UOS, make_pose, pose_difference
 from slam6d.io.frames import read_frames
 from slam6d.io.poses import read_kitti_poses
 from slam6d.metrics import absolute_trajectory_error
@@ -194,3 +194,43 @@ def test_balm_hall_from_drifted_odometry(shared_data) -> None:  # type: ignore[n
     moved = self_consistency(sequence, pipeline.poses)
     assert moved[(57, 88)] <= 0.01
     assert float(np.mean(list(moved.values()))) <= 0.015
+
+
+BUNNY_RING = ("bun000", "bun045", "bun090", "bun180", "bun270", "bun315")
+
+
+@pytest.mark.slow
+def test_bunny_ring_from_perturbed_starts_returns_to_bun_conf(shared_data) -> None:  # type: ignore[no-untyped-def]
+    """The turntable ring 0-45-90-180-270-315(-0), every view but the first started ~3 mm / ~5° off."""
+    from slam6d.icp import ICPConfig
+    from slam6d.io.registry import read_sequence
+    from slam6d.loops import LoopConfig
+    from slam6d.posegraph import so3_exp
+    from slam6d.relax import RelaxationConfig
+
+    views = {scan.name: scan for scan in read_sequence(shared_data / "stanford_bunny" / "bun.conf", "conf")}
+    reference = [views[name].pose.copy() for name in BUNNY_RING]
+    rng = np.random.default_rng(0)
+    scans = []
+    for k, name in enumerate(BUNNY_RING):
+        noise = make_pose(so3_exp(rng.normal(0.0, np.radians(3.0), 3)), rng.normal(0.0, 0.003, 3))
+        scans.append(Scan(views[name].points, reference[k] @ noise if k else reference[k], name, has_pose=True))
+    start_error = absolute_trajectory_error([s.pose for s in scans], reference, align=False).rmse
+    # the bunny is 15 cm across: every length of the robot-scale defaults shrinks accordingly
+    config = PipelineConfig(
+        voxel_size=0.001,
+        data_voxel_size=0.002,
+        icp=ICPConfig(max_distance=0.005, normal_voxel_size=0.002, data_voxel_size=0.0),
+        loop=LoopConfig(
+            min_path=0.0, min_path_factor=0.0, min_index_gap=3, overlap_cube=0.005, max_rms=0.003, radius_fraction=2.0
+        ),
+        relax=RelaxationConfig(robust_scale=0.0002, tolerance=0.00002, max_rounds=30),
+    )
+    pipeline = Pipeline(ScanSequence(scans), config)
+    report = pipeline.run()
+    assert report.loops_closed, [h.reason for h in report.loops]
+    assert start_error > 0.003
+    assert absolute_trajectory_error(pipeline.poses, reference).rmse <= 0.003
+    for name, got, want in zip(BUNNY_RING, pipeline.poses, reference, strict=True):
+        dt, dr = pose_difference(got, want)  # scan 0 is fixed at its reference pose: no alignment needed
+        assert dt < 0.002 and np.degrees(dr) < 1.0, (name, dt, np.degrees(dr))
