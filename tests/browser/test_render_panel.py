@@ -49,6 +49,21 @@ def test_add_two_keyframes_render_and_download(corridor_sessions, live_server, n
     # the preview draws one frustum per keyframe
     viewer = server.app.state.viewers.get("corridor")
     assert len(viewer.render_panel._frustums) == 2
+    # "Go to" the first keyframe: this browser's camera returns to the first view
+    input_of(frame, "Keyframe").click()
+    frame.get_by_role("option", name="1", exact=True).click()
+    frame.get_by_role("button", name="Go to").click()
+    client = next(iter(viewer.server.get_clients().values()))
+    deadline = time.monotonic() + 10
+    while not np.allclose(client.camera.position, saved[0]["position"], atol=1e-3):
+        assert time.monotonic() < deadline, f"camera at {client.camera.position}, not at keyframe 1"
+        time.sleep(0.05)
+    # "Down" swaps it with the second one, saved at once
+    frame.get_by_role("button", name="Down").click()
+    deadline = time.monotonic() + 10
+    while [k["position"] for k in session.camera_path()] != [saved[1]["position"], saved[0]["position"]]:
+        assert time.monotonic() < deadline, "the keyframes were not reordered"
+        time.sleep(0.05)
 
     input_of(frame, "Size").click()
     frame.get_by_role("option", name="320x240").click()
