@@ -330,9 +330,11 @@ class RenderPanel:
         self.job_id: str | None = None
         self._frustums: list[Any] = []
         self._flying = threading.Event()
+        self._draw_lock = threading.Lock()  # edits arrive from REST threads, GUI callbacks and jobs at once
         self._build_gui()
         _panels.add(self)
         self.workbench.jobs.on_change(self._on_job)
+        self.workbench.on_revision(self._on_revision)
         threading.Thread(target=self._draw_when_loaded, name=f"render-panel-{self.session_id}", daemon=True).start()
 
     # -------------------------------------------------------------- GUI
@@ -407,7 +409,15 @@ class RenderPanel:
         """The saved path changed (from this panel, another browser or REST): redraw list and preview."""
         self._safely(self.draw)
 
+    def _on_revision(self, session_id: str) -> None:
+        if session_id == self.session_id and self.viewer.ready.is_set() and not keyframes_of(self.session):
+            self.path_changed()  # the default path follows the scans, which just moved
+
     def draw(self) -> None:
+        with self._draw_lock:
+            self._draw()
+
+    def _draw(self) -> None:
         keyframes = keyframes_of(self.session)
         labels = self._labels(len(keyframes))
         previous = self.selected.value
