@@ -12,7 +12,7 @@ Two cases, both from the BALM hall walk (a real handheld 360° LiDAR scan of an 
 All methods pair points up to 25 cm (the paper's distance; the peers are also more accurate on the
 real pair with it than with their 1 m default). Every timing starts from plain numpy arrays and includes whatever the method needs first (trees,
 normals, covariances, down-sampling); it is the median of ``--runs`` runs after one warm-up (numba
-compiles on first call and caches), with the best run beside it. "cpu ms" is the CPU time of all threads together: it shows the
+compiles on first call and caches), with the best run beside it; runs are interleaved across methods. "cpu ms" is the CPU time of all threads together: it shows the
 work done and is less disturbed than wall time when other programs share the machine. A second table compares the nearest-neighbour backends behind
 ``slam6d/nn.py``. Run: ``.venv/bin/python benchmarks/pair.py`` (data from ``SLAM6D_DATA`` or
 ``../shared/data``).
@@ -168,24 +168,35 @@ def methods() -> dict[str, Registration]:
     return found
 
 
-def time_method(run: Registration, case: tuple[np.ndarray, ...], runs: int) -> tuple[float, float, float, float, float]:
-    """(median wall ms, best wall ms, median CPU ms of all threads, translation error mm, rotation error deg)."""
+def time_methods(
+    chosen: dict[str, Registration], case: tuple[np.ndarray, ...], runs: int
+) -> dict[str, tuple[float, float, float, float, float]]:
+    """Per method: (median wall ms, best wall ms, median CPU ms of all threads, error mm, error deg).
+
+    The runs are interleaved (every method once per round) so that a busy spell on a shared machine
+    slows all methods alike instead of whichever happened to run during it.
+    """
     model, data, initial, truth = case
-    run(model, data, initial)  # warm-up: numba compile/caches, library initialisation
-    wall, cpu, transform = [], [], initial
+    wall: dict[str, list[float]] = {name: [] for name in chosen}
+    cpu: dict[str, list[float]] = {name: [] for name in chosen}
+    result = {name: run(model, data, initial) for name, run in chosen.items()}  # warm-up (numba compiles)
     for _ in range(runs):
-        start, start_cpu = time.perf_counter(), time.process_time()
-        transform = run(model, data, initial)
-        wall.append(time.perf_counter() - start)
-        cpu.append(time.process_time() - start_cpu)
-    metres, radians = pose_difference(transform, truth)
-    return (
-        statistics.median(wall) * 1e3,
-        min(wall) * 1e3,
-        statistics.median(cpu) * 1e3,
-        metres * 1e3,
-        float(np.degrees(radians)),
-    )
+        for name, run in chosen.items():
+            start, start_cpu = time.perf_counter(), time.process_time()
+            result[name] = run(model, data, initial)
+            wall[name].append(time.perf_counter() - start)
+            cpu[name].append(time.process_time() - start_cpu)
+    table = {}
+    for name in chosen:
+        metres, radians = pose_difference(result[name], truth)
+        table[name] = (
+            statistics.median(wall[name]) * 1e3,
+            min(wall[name]) * 1e3,
+            statistics.median(cpu[name]) * 1e3,
+            metres * 1e3,
+            float(np.degrees(radians)),
+        )
+    return table
 
 
 def nn_table(runs: int) -> None:
@@ -229,11 +240,9 @@ def main() -> None:
     for title, case in cases.items():
         print(f"\n{title}: {len(case[0])} model / {len(case[1])} data points, start 0.3 m / 5° off, {THREADS} threads")
         print(f"{'method':44s} {'time ms':>8s} {'best ms':>8s} {'cpu ms':>8s} {'err mm':>8s} {'err deg':>8s}")
-        for name, run in methods().items():
-            if args.only and args.only not in name:
-                continue
-            ms, best, cpu, mm, deg = time_method(run, case, args.runs)
-            print(f"{name:44s} {ms:8.0f} {best:8.0f} {cpu:8.0f} {mm:8.2f} {deg:8.3f}", flush=True)
+        chosen = {name: run for name, run in methods().items() if args.only in name}
+        for name, (ms, best, cpu, mm, deg) in time_methods(chosen, case, args.runs).items():
+            print(f"{name:44s} {ms:8.0f} {best:8.0f} {cpu:8.0f} {mm:8.2f} {deg:8.3f}")
     if not args.no_nn:
         nn_table(args.runs)
 
