@@ -412,8 +412,8 @@ def _splat_kernel(
                     if 0.0 <= u < width and 0.0 <= v < height:
                         col = int(u)
                         row = int(v)
-                        if key < buf[row, col]:
-                            buf[row, col] = key
+                        old = buf[row, col]
+                        buf[row, col] = key if key < old else old  # branch-free: the outcome is random
                     continue
                 if size > max_size:
                     size = max_size
@@ -430,8 +430,8 @@ def _splat_kernel(
                 r0 = max(r0, 0)
                 for r in range(r0, r1):
                     for cc in range(c0, c1):
-                        if key < buf[r, cc]:
-                            buf[r, cc] = key
+                        old = buf[r, cc]
+                        buf[r, cc] = key if key < old else old
 
 
 @njit(parallel=True, fastmath=True, cache=True)
