@@ -6,10 +6,14 @@ Two methods, both over the same neighbour graph (scans whose reduced clouds shar
 * :func:`simultaneous_matching` - the seed's method. A queue starts at the first scan of the loop;
   each scan taken from it is re-matched by ICP against the union of its neighbours, and when it
   moves by more than a threshold its neighbours are queued again. The first scan stays fixed.
-* :func:`lum_relaxation` - LUM-style: every neighbour pair is matched by ICP to a relative pose with
-  an information matrix derived from its point pairs, and all poses are solved for at once by
-  sparse least squares (:mod:`slam6d.posegraph`); a few rounds re-match the pairs from the new
-  poses. This scales to large graphs because one sparse solve replaces many sweeps of the queue.
+* :func:`lum_relaxation` - LUM-style: like 3DTK's LUM, each round takes the closest-point pairs of
+  every neighbour pair at the current poses and solves one linear system for all poses at once
+  (here with point-to-plane residuals, Cauchy-weighted with a scale that halves from the ICP max
+  distance each round, and a sparse solve); the next round re-pairs from the new poses. No pair is
+  re-matched by ICP, so a round costs one closest-point query per data point of each edge; each
+  edge gets an even share of ``round_points`` data points, so that every overlapping pair, the
+  long-range ones that make a map globally consistent included, can take part.
+  :func:`lum` relaxes a graph of relative-pose edges (:mod:`slam6d.posegraph`).
 
 Residuals are reported before and after as the RMS closest-point distance over all neighbour
 pairs (the quantity both methods reduce). A scan that does not overlap any other relaxed scan
@@ -74,10 +78,10 @@ class RelaxationConfig:
     lum_icp_iterations: int = 8
     max_neighbours: int = 0  # strongest neighbours kept per scan for LUM edges; 0 = every neighbour pair
     edge_points: int = 4000  # data points per edge (evenly thinned), at most
-    round_points: int = 400_000  # data points per LUM round over all edges: many edges get fewer points each
+    round_points: int = 2_000_000  # data points per LUM round over all edges: many edges get fewer points each
     tolerance: float = 0.0005  # metres: stop LUM rounds when no scan moves more
     damping: float = 1e-3  # Levenberg damping of the joint LUM step, relative to the diagonal
-    robust_scale: float = 0.02  # metres: final Cauchy scale of the LUM point-to-plane residuals (0 = least squares)
+    robust_scale: float = 0.05  # metres: final Cauchy scale of the LUM point-to-plane residuals (0 = least squares)
 
 
 @dataclass
