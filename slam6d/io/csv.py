@@ -20,18 +20,9 @@ import numpy as np
 from slam6d.errors import FormatError
 from slam6d.geometry import CANONICAL, Matrix
 from slam6d.io.registry import CloudData, ScanFormat, register_format
-from slam6d.io.text import parse_numeric_rows
+from slam6d.io.text import parse_numeric_rows, read_text_file
 
 _GT_COLUMNS = [f"gt{r}{c}" for r in range(4) for c in range(4)]
-
-
-def _read_text(path: Path) -> str:
-    try:
-        return path.read_text()
-    except UnicodeDecodeError:
-        raise FormatError(path, "not a text file") from None
-    except OSError as exc:
-        raise FormatError(path, f"cannot read: {exc.strerror}") from None
 
 
 def _first_row(text: str) -> tuple[int, list[str], str | None]:
@@ -65,7 +56,7 @@ def is_list_file(path: Path) -> bool:
 
 def read_pointmatcher_list(path: Path) -> list[tuple[Path, Matrix | None]]:
     """(cloud path, ground-truth pose or None) for each row of a libpointmatcher list file."""
-    text = _read_text(path)
+    text = read_text_file(path)
     header_index, header, _ = _first_row(text)
     names = [h.lower() for h in header]
     if not names or names[0] != "reading":
@@ -101,7 +92,7 @@ def find_list_for(directory: Path, suffix: str) -> list[tuple[Path, Matrix | Non
 
 
 def read_csv_cloud(path: Path) -> CloudData:
-    text = _read_text(path)
+    text = read_text_file(path)
     header_index, first, delimiter = _first_row(text)
     if header_index < 0:
         return CloudData(np.empty((0, 3)))

@@ -16,7 +16,7 @@ import numpy as np
 
 from slam6d.errors import FormatError
 from slam6d.geometry import FrameConvention, Matrix
-from slam6d.io.text import parse_numeric_rows
+from slam6d.io.text import parse_numeric_rows, read_text_file
 
 
 class FrameType(IntEnum):
@@ -35,12 +35,7 @@ FrameEntry = tuple[Matrix, FrameType]
 def read_frames(path: Path | str) -> list[FrameEntry]:
     """All (native 4x4 pose, type) entries of a ``.frames`` file, oldest first."""
     path = Path(path)
-    try:
-        text = path.read_text()
-    except UnicodeDecodeError:
-        raise FormatError(path, "not a text file (.frames files are 17 numbers per line)") from None
-    except OSError as exc:
-        raise FormatError(path, f"cannot read: {exc.strerror}") from None
+    text = read_text_file(path, "17 numbers per line")
     rows = parse_numeric_rows(path, text, allowed_columns=(17,))
     if rows.shape[0] == 0:
         raise FormatError(path, "the file contains no frames")

@@ -15,7 +15,7 @@ from numpy.typing import NDArray
 
 from slam6d.errors import FormatError
 from slam6d.geometry import Matrix, make_pose, quaternion_to_rotation, rotation_to_quaternion
-from slam6d.io.text import parse_numeric_rows
+from slam6d.io.text import parse_numeric_rows, read_text_file
 
 G2oEdge = tuple[int, int, Matrix, Matrix]  # (from, to, relative pose from->to, 6x6 information)
 
@@ -23,12 +23,7 @@ G2oEdge = tuple[int, int, Matrix, Matrix]  # (from, to, relative pose from->to, 
 def _read_rows(path: Path, columns: tuple[int, ...]) -> tuple[NDArray[np.float64], str]:
     """Numeric rows and the raw text (kept to turn a row index back into a line number)."""
     path = Path(path)
-    try:
-        text = path.read_text()
-    except UnicodeDecodeError:
-        raise FormatError(path, "not a text file") from None
-    except OSError as exc:
-        raise FormatError(path, f"cannot read: {exc.strerror}") from None
+    text = read_text_file(path, "pose lines")
     rows = parse_numeric_rows(path, text, allowed_columns=columns)
     if rows.shape[0] == 0:
         raise FormatError(path, "the file contains no poses")

@@ -19,6 +19,20 @@ from numpy.typing import NDArray
 from slam6d.errors import FormatError
 
 
+def read_text_file(path: Path, expected: str = "") -> str:
+    """A text file's contents, or a :class:`FormatError` naming it (binary or unreadable files).
+
+    ``expected`` says what the format wants (e.g. "'x y z' per line"), so the message tells the user
+    what the file should have looked like.
+    """
+    try:
+        return Path(path).read_text()
+    except UnicodeDecodeError:
+        raise FormatError(path, "not a text file" + (f" (expected {expected})" if expected else "")) from None
+    except OSError as exc:
+        raise FormatError(path, f"cannot read: {exc.strerror}") from None
+
+
 def parse_numeric_rows(
     path: Path,
     text: str,

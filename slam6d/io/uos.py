@@ -16,7 +16,7 @@ import numpy as np
 from slam6d.errors import FormatError
 from slam6d.geometry import UOS, Matrix, rotation_to_euler, uos_pose
 from slam6d.io.registry import CloudData, ScanFormat, register_format
-from slam6d.io.text import parse_numeric_bytes, parse_numeric_rows
+from slam6d.io.text import parse_numeric_bytes, parse_numeric_rows, read_text_file
 
 NO_ECHO_RANGE_CM = 3276.0
 _SCAN_NAME = re.compile(r"^scan(\d{3})\.3d$")
@@ -24,10 +24,7 @@ _SCAN_NAME = re.compile(r"^scan(\d{3})\.3d$")
 
 def read_pose_file(path: Path) -> Matrix:
     """Native pose (cm, left-handed) from a ``.pose`` file."""
-    try:
-        text = path.read_text()
-    except OSError as exc:
-        raise FormatError(path, f"cannot read pose file: {exc.strerror}") from None
+    text = read_text_file(path, "2 lines: x y z, then θx θy θz")
     lines = [ln for ln in text.splitlines() if ln.strip()]
     if len(lines) < 2:
         raise FormatError(

@@ -12,10 +12,9 @@ from pathlib import Path
 
 import numpy as np
 
-from slam6d.errors import FormatError
 from slam6d.geometry import CANONICAL
 from slam6d.io.registry import CloudData, ScanFormat, register_format
-from slam6d.io.text import parse_numeric_rows
+from slam6d.io.text import parse_numeric_rows, read_text_file
 
 MAX_COLUMNS = 32
 
@@ -29,12 +28,7 @@ def _first_data_line(lines: list[str]) -> int | None:
 
 
 def read_xyz(path: Path) -> CloudData:
-    try:
-        text = path.read_text()
-    except UnicodeDecodeError:
-        raise FormatError(path, "not a text file (expected 'x y z' per line)") from None
-    except OSError as exc:
-        raise FormatError(path, f"cannot read: {exc.strerror}") from None
+    text = read_text_file(path, "'x y z' per line")
     lines = text.splitlines()
     first = _first_data_line(lines)
     if first is None:
