@@ -70,6 +70,8 @@ def create_app(sessions_dir: Path | str, viewers: bool = True, max_upload_mb: in
             workbench.state(session_id)
         except UnknownSessionError:
             raise HTTPException(404, f"no session '{session_id}'") from None
+        if viewers:  # start reading scans while the browser still loads the page and the 3D client
+            app.state.viewers.get(session_id)
         return FileResponse(STATIC_DIR / "session.html")
 
     @app.get("/sessions", include_in_schema=False)

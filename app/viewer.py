@@ -140,6 +140,7 @@ class SessionViewer:
     def _load(self) -> None:
         try:
             sequence = self.state.sequence(lambda d, t: self._progress("Reading scans", d, t))
+            self.budget.value = int(self.state.session.config.engine.get("display_budget", scene.DEFAULT_BUDGET))
             self._rebuild_scans()
             poses = sequence.poses()
             lo = np.min([p[:3, 3] for p in poses], axis=0)
@@ -163,7 +164,12 @@ class SessionViewer:
         self.status.content = f"{stage}… {done}/{total}"
 
     def _rebuild_scans(self) -> None:
-        """(Re)send every scan at the current budget: the only time point data goes over the wire."""
+        """(Re)send every scan at the current budget: the only time point data goes over the wire.
+
+        The scans go out as one atomic batch, so a browser draws the map once, complete, rather
+        than redrawing a growing map after each scan: without a GPU every redraw of the whole map
+        costs as much as the final one.
+        """
         sequence = self.state.sequence()
         voxel = float(self.state.session.config.engine.get("display_voxel_size", 0.05))
         with self.lock:
@@ -171,6 +177,21 @@ class SessionViewer:
             self.local = [s.points[idx].astype(np.float32) for s, idx in zip(sequence.scans, selection, strict=True)]
             self.poses = [s.pose.copy() for s in sequence.scans]
             self.residuals = None
+            self._send_scans([s.name for s in sequence.scans])
+            self.shown_revision = self.state.session.revision
+        self._draw_graph()
+        self._update_status()
+
+    def _send_scans(self, names: list[str]) -> None:
+        """All scans in one websocket message, so the browser's first frame with points shows them all.
+
+        viser sends at most 128 messages (4 per scan) per websocket message and the browser
+        redraws after each one; the window is widened to hold the whole map. (Hiding the scans
+        until all are sent does not work: viser drops a queued "hidden" when "shown" follows.)
+        """
+        buffer = self.server._websock_server.get_message_buffer()  # no public setting for this
+        buffer.max_window_size = max(buffer.max_window_size, 4 * len(self.local) + 16)
+        with self.server.atomic():
             for node in self.nodes:
                 node.remove()
             self.nodes = []
@@ -178,7 +199,7 @@ class SessionViewer:
                 pose = self.poses[k]
                 self.nodes.append(
                     self.server.scene.add_point_cloud(
-                        f"/scans/{sequence.scans[k].name or k}",
+                        f"/scans/{names[k] or k}",
                         points=points,
                         colors=self._colours(k),
                         point_size=float(self.point_size.value),
@@ -187,9 +208,6 @@ class SessionViewer:
                         wxyz=rotation_to_quaternion(pose[:3, :3]),
                     )
                 )
-            self.shown_revision = self.state.session.revision
-        self._draw_graph()
-        self._update_status()
 
     def _colours(self, k: int) -> np.ndarray | tuple[int, int, int]:
         if k in self.highlight:
@@ -209,26 +227,37 @@ class SessionViewer:
             if self.colour.value == "residual" and self.residuals is None:
                 self.status.content = "Computing residuals…"
                 self.residuals = scene.residuals(self.local, self.poses)
-            for k, node in enumerate(self.nodes):
-                colours = self._colours(k)
-                node.colors = np.broadcast_to(np.array(colours, np.uint8), (len(self.local[k]), 3))
+            with self.server.atomic():
+                for k in range(len(self.nodes)):
+                    self.paint(k)
         self._update_status()
+
+    def paint(self, k: int) -> None:
+        """Send scan ``k``'s colours; a single colour goes as one RGB triple, not one per point."""
+        self.nodes[k].colors = np.asarray(self._colours(k), np.uint8)
 
     def _set_point_size(self) -> None:
         for node in self.nodes:
             node.point_size = float(self.point_size.value)
 
     def set_poses(self, poses: list[Matrix], indices: list[int] | None = None) -> None:
-        """Move scan nodes (pose-only update: no point data is sent)."""
-        with self.lock:
+        """Move scan nodes: only position and orientation of the nodes that moved are sent.
+
+        One atomic batch, so a browser never draws a scan at a new position with its old rotation.
+        """
+        with self.lock, self.server.atomic():
+            moved = False
             for k in range(len(poses)) if indices is None else indices:
-                if k >= len(self.nodes):
+                pose = np.asarray(poses[k], dtype=np.float64)
+                if k >= len(self.nodes) or np.array_equal(pose, self.poses[k]):
                     continue
-                self.poses[k] = np.asarray(poses[k]).copy()
-                self.nodes[k].position = self.poses[k][:3, 3]
-                self.nodes[k].wxyz = rotation_to_quaternion(self.poses[k][:3, :3])
+                self.poses[k] = pose.copy()
+                self.nodes[k].position = pose[:3, 3]
+                self.nodes[k].wxyz = rotation_to_quaternion(pose[:3, :3])
+                moved = True
             self.pose_updates += 1
-            self.residuals = None
+            if moved:
+                self.residuals = None
 
     def _draw_graph(self) -> None:
         with self.lock:
@@ -466,9 +495,7 @@ class Stepper:
         viewer.highlight = {} if current is None else {**dict.fromkeys(model, _PAIR_MODEL), current: _PAIR_DATA}
         for k in changed:
             if k is not None and k < len(viewer.nodes):
-                viewer.nodes[k].colors = np.broadcast_to(
-                    np.array(viewer._colours(k), np.uint8), (len(viewer.local[k]), 3)
-                )
+                viewer.paint(k)
 
     def _draw_correspondences(self, index: int, max_distance: float) -> None:
         """Closest-point pairs between the current scan and its model, from the displayed points (capped)."""
