@@ -29,7 +29,7 @@ from __future__ import annotations
 import itertools
 import math
 import threading
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 
 import numba
@@ -38,7 +38,7 @@ from numpy.typing import NDArray
 
 from slam6d import nn
 from slam6d.errors import RegistrationError
-from slam6d.geometry import axis_angle_to_rotation, make_pose, rotation_angle, transform_points
+from slam6d.geometry import axis_angle_to_rotation, invert, make_pose, rotation_angle, transform_points
 from slam6d.octree import reduce_points
 
 FloatArray = NDArray[np.float64]
@@ -250,6 +250,80 @@ def estimate_normals(
         return _normals_kernel(source.points, np.ascontiguousarray(neighbours), float(min_planarity))
 
 
+@numba.njit(cache=True)
+def _cell_moments(points, cell_of, cells):  # type: ignore[no-untyped-def]
+    """Per cell: count, sum and sum of outer products of its points (one pass, no neighbour search)."""
+    moments = np.zeros((cells, 10))
+    for i in range(points.shape[0]):
+        c = cell_of[i]
+        x = points[i, 0]
+        y = points[i, 1]
+        z = points[i, 2]
+        m = moments[c]
+        m[0] += 1.0
+        m[1] += x
+        m[2] += y
+        m[3] += z
+        m[4] += x * x
+        m[5] += x * y
+        m[6] += x * z
+        m[7] += y * y
+        m[8] += y * z
+        m[9] += z * z
+    return moments
+
+
+@numba.njit(cache=True)
+def _cell_normals_kernel(moments, min_points, min_planarity):  # type: ignore[no-untyped-def]
+    n = moments.shape[0]
+    normals = np.zeros((n, 3))
+    valid = np.zeros(n, dtype=np.bool_)
+    for c in range(n):
+        count = moments[c, 0]
+        if count < min_points:
+            continue
+        mx = moments[c, 1] / count
+        my = moments[c, 2] / count
+        mz = moments[c, 3] / count
+        c00 = moments[c, 4] / count - mx * mx
+        c01 = moments[c, 5] / count - mx * my
+        c02 = moments[c, 6] / count - mx * mz
+        c11 = moments[c, 7] / count - my * my
+        c12 = moments[c, 8] / count - my * mz
+        c22 = moments[c, 9] / count - mz * mz
+        x, y, z, _small, middle, large = _smallest_eigenvector(c00, c01, c02, c11, c12, c22)
+        if large > 0.0 and middle > min_planarity * large and (x != 0.0 or y != 0.0 or z != 0.0):
+            normals[c, 0] = x
+            normals[c, 1] = y
+            normals[c, 2] = z
+            valid[c] = True
+    return normals, valid
+
+
+def cell_normals(
+    points: FloatArray, cell_size: float, min_points: int = 4, min_planarity: float = 0.05
+) -> tuple[FloatArray, NDArray[np.bool_]]:
+    """Unit normal at every point from a PCA of the points sharing its ``cell_size`` cube, and which are usable.
+
+    About ten times cheaper than :func:`estimate_normals` on a reduced scan (no k-nearest-neighbour
+    query: one pass accumulates each cube's moments), at the price of fewer usable normals (cubes
+    across an edge or with fewer than ``min_points`` points are unusable) and cruder ones near
+    edges. Sequential registration, which re-estimates nothing and only needs the planes to slide
+    along, uses these; relaxation keeps the k-NN normals.
+    """
+    points = np.ascontiguousarray(points, dtype=np.float64)
+    if len(points) == 0:
+        return np.zeros((0, 3)), np.zeros(0, dtype=np.bool_)
+    local = points - points.mean(axis=0)  # moments about a nearby origin keep the covariance exact
+    cells = np.floor(local / float(cell_size)).astype(np.int64)
+    keys = (cells[:, 0] << 42) + (cells[:, 1] << 21) + cells[:, 2]
+    _, cell_of = np.unique(keys, return_inverse=True)
+    cell_of = cell_of.ravel()
+    moments = _cell_moments(local, cell_of, int(cell_of.max()) + 1)
+    normals, valid = _cell_normals_kernel(moments, float(min_points), float(min_planarity))
+    return normals[cell_of], valid[cell_of]
+
+
 class _numba_threads:  # noqa: N801 - used like a function in a with-statement
     """Bound numba's parallel kernels to ``threads`` for the duration of a block (thread-local in numba)."""
 
@@ -292,6 +366,8 @@ class ModelIndex:
         normal_voxel_size: float = ICPConfig.normal_voxel_size,
         backend: str = nn.DEFAULT_BACKEND,
         threads: int = 2,
+        normal_cell: float = 0.0,
+        index: nn.NeighbourIndex | None = None,
     ) -> None:
         points = np.ascontiguousarray(points, dtype=np.float64)
         if points.ndim != 2 or points.shape[1] != 3:
@@ -303,8 +379,11 @@ class ModelIndex:
         self.normal_voxel_size = float(normal_voxel_size)
         self.backend = backend
         self.threads = int(threads)
+        self.normal_cell = float(normal_cell)
         self._lock = threading.RLock()
-        self._index: nn.NeighbourIndex | None = None
+        if index is not None and len(index) != len(points):
+            raise ValueError(f"the shared neighbour index has {len(index)} points, the model {len(points)}")
+        self._index: nn.NeighbourIndex | None = index
         self._plane_indices: IndexArray | None = None
         self._plane_index: nn.NeighbourIndex | None = None
         self._normals = np.zeros((0, 3))
@@ -346,12 +425,17 @@ class ModelIndex:
         with self._lock:
             if self._plane_index is not None:
                 return
-            if self.normal_voxel_size > 0:
+            if self.normal_voxel_size > 0 and self.normal_cell <= 0:
                 indices = reduce_points(self.points, self.normal_voxel_size)
             else:
                 indices = np.arange(len(self.points), dtype=np.int64)
             self._normals = np.zeros((len(indices), 3))
             self._normal_state = np.zeros(len(indices), dtype=np.int8)
+            if self.normal_cell > 0:
+                # all cube normals at once (cheaper than any k-NN estimate); where a cube gives none
+                # (too few points, an edge) the k-NN estimate is made on demand as usual
+                self._normals, usable = cell_normals(self.points, self.normal_cell)
+                self._normal_state = usable.astype(np.int8)
             self._plane_indices = indices
             self._plane_index = (
                 self.index
@@ -378,6 +462,129 @@ class ModelIndex:
         """(points, normals, usable) of the whole plane sample, e.g. for drawing the model's normals."""
         normals, usable = self.plane_normals_for(np.arange(len(self.plane_indices)))
         return self.plane_index.points, normals, usable
+
+
+class StackedModel(ModelIndex):
+    """Several scans, each with its own kd-trees and normals in its own frame, placed by poses: a
+    metascan that costs nothing to build.
+
+    A metascan rebuilt as one union for every registered scan (a kd-tree over all points, normals
+    moved into the world) cost more than the matching itself. Here each data point is looked up in
+    every member (moved into that member's frame) and keeps the closest hit; the members' trees and
+    normals were built once, when their scans were added. The model frame is the world. Indices
+    number the members' raw points (``nearest``) or plane samples (``plane_index``) one member
+    after the other.
+    """
+
+    def __init__(self, members: Sequence[ModelIndex], poses: Sequence[FloatArray]) -> None:
+        if not members or len(members) != len(poses):
+            raise ValueError("a stacked model needs one pose per member and at least one member")
+        self.members = list(members)
+        self._poses = [np.asarray(p, dtype=np.float64) for p in poses]
+        self._inverse = [invert(p) for p in self._poses]
+        self.normal_neighbours = self.members[0].normal_neighbours
+        self.normal_voxel_size = self.members[0].normal_voxel_size
+        self.normal_cell = self.members[0].normal_cell
+        self.backend = self.members[0].backend
+        self.threads = self.members[0].threads
+        self._lock = threading.RLock()
+        self._points: FloatArray | None = None
+        self._raw = _StackedSearch(self, plane=False)
+        self._sample = _StackedSearch(self, plane=True)
+
+    @property
+    def points(self) -> FloatArray:  # type: ignore[override]
+        """All members' points in the world frame (assembled on first use: point-to-plane never needs it)."""
+        if self._points is None:
+            self._points = np.concatenate(
+                [transform_points(p, m.points) for m, p in zip(self.members, self._poses, strict=True)]
+            )
+        return self._points
+
+    def __len__(self) -> int:
+        return len(self._raw)
+
+    @property
+    def index(self) -> nn.NeighbourIndex:
+        return self._raw
+
+    def nearest(self, points: FloatArray, max_distance: float) -> tuple[FloatArray, IndexArray]:
+        return self._raw.nearest(points, max_distance)
+
+    @property
+    def plane_indices(self) -> IndexArray:
+        return np.concatenate([o + m.plane_indices for o, m in zip(self._raw.offsets[:-1], self.members, strict=True)])
+
+    @property
+    def plane_index(self) -> nn.NeighbourIndex:
+        return self._sample
+
+    def sample_points(self, sample: IndexArray) -> FloatArray:
+        """World coordinates of plane-sample points, without assembling the whole stack."""
+        out = np.empty((len(sample), 3))
+        for k, chosen, local in self._sample.split(sample):
+            out[chosen] = transform_points(self._poses[k], self.members[k].plane_index.points[local])
+        return out
+
+    def plane_normals_for(self, sample: IndexArray) -> tuple[FloatArray, NDArray[np.bool_]]:
+        sample = np.asarray(sample, dtype=np.int64)
+        normals = np.zeros((len(sample), 3))
+        usable = np.zeros(len(sample), dtype=np.bool_)
+        for k, chosen, local in self._sample.split(sample):
+            part, ok = self.members[k].plane_normals_for(local)
+            normals[chosen] = part @ self._poses[k][:3, :3].T
+            usable[chosen] = ok
+        return normals, usable
+
+    def plane_normals(self) -> tuple[FloatArray, FloatArray, NDArray[np.bool_]]:
+        sample = np.arange(len(self._sample), dtype=np.int64)
+        normals, usable = self.plane_normals_for(sample)
+        return self.sample_points(sample), normals, usable
+
+
+class _StackedSearch(nn.NeighbourIndex):
+    """Closest point over a :class:`StackedModel`'s members (raw points or plane samples): each
+    member's own tree, the closest hit wins."""
+
+    name = "stacked"
+
+    def __init__(self, model: StackedModel, plane: bool) -> None:  # no tree of its own
+        self.model = model
+        self.plane = plane
+        self.threads = model.threads
+        sizes = [len(m.plane_indices) if plane else len(m.points) for m in model.members]
+        self.offsets = np.cumsum([0, *sizes])
+
+    def __len__(self) -> int:
+        return int(self.offsets[-1])
+
+    @property
+    def points(self) -> FloatArray:  # type: ignore[override]
+        if self.plane:
+            return self.model.sample_points(np.arange(len(self), dtype=np.int64))
+        return self.model.points
+
+    def split(self, indices: IndexArray) -> Iterator[tuple[int, NDArray[np.bool_], IndexArray]]:
+        """(member, which of ``indices`` are its, their indices within it) for each member hit."""
+        member = np.searchsorted(self.offsets, indices, side="right") - 1
+        for k in range(len(self.model.members)):
+            chosen = member == k
+            if chosen.any():
+                yield k, chosen, indices[chosen] - self.offsets[k]
+
+    def nearest(self, queries: FloatArray, max_distance: float) -> tuple[FloatArray, IndexArray]:
+        best_d = np.full(len(queries), np.inf)
+        best_i = np.full(len(queries), -1, dtype=np.int64)
+        for k, m in enumerate(self.model.members):
+            tree = m.plane_index if self.plane else m.index
+            d, i = tree.nearest(transform_points(self.model._inverse[k], queries), max_distance)
+            closer = d < best_d
+            best_d[closer] = d[closer]
+            best_i[closer] = i[closer] + self.offsets[k]
+        return best_d, best_i
+
+    def knn(self, queries: FloatArray, k: int) -> tuple[FloatArray, IndexArray]:
+        raise NotImplementedError("a stacked model answers closest-point queries only")
 
 
 def _as_model(model: ModelIndex | FloatArray, config: ICPConfig) -> ModelIndex:
@@ -472,7 +679,9 @@ def _pairs(
     data_idx = np.flatnonzero(idx >= 0)
     normals, usable = model.plane_normals_for(idx[data_idx])
     data_idx = data_idx[usable]
-    return data_idx, sample.points[idx[data_idx]], dist[data_idx], normals[usable]
+    paired = idx[data_idx]
+    points = model.sample_points(paired) if isinstance(model, StackedModel) else sample.points[paired]
+    return data_idx, points, dist[data_idx], normals[usable]
 
 
 def icp_iterations(

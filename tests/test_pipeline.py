@@ -255,3 +255,42 @@ def test_simulated_session_on_disk_through_slam6d_run_matches_ground_truth(tmp_p
     assert estimate < 1.0, (estimate, odometry)
     report = json.loads((tmp_path / "out" / "report.json").read_text())
     assert report["loops_closed"], report["loops"]
+
+
+def test_stacked_model_pairs_like_the_union_of_its_members() -> None:
+    """The metascan without a union tree: each member searched in its own frame, closest hit wins."""
+    from slam6d.geometry import pose_from_xyzrpy, transform_points
+    from slam6d.icp import ModelIndex, StackedModel, cell_normals, icp
+
+    rng = np.random.default_rng(3)
+    floor = np.column_stack([rng.uniform(-5, 5, (4000, 2)), np.zeros(4000)])
+    wall = np.column_stack([rng.uniform(-5, 5, 2000), np.full(2000, 3.0), rng.uniform(0, 2, 2000)])
+    side = np.column_stack([np.full(2000, -4.0), rng.uniform(-3, 3, 2000), rng.uniform(0, 2, 2000)])
+    world = np.concatenate([floor, wall, side])
+    poses = [pose_from_xyzrpy(0.0, 0.0, 0.0, 0.0, 0.0, 0.0), pose_from_xyzrpy(1.0, 0.5, 0.0, 0.0, 0.0, 0.3)]
+    own = [transform_points(np.linalg.inv(p), world[k::2]) for k, p in enumerate(poses)]
+    members = [ModelIndex(points, normal_voxel_size=0.0, normal_cell=1.0) for points in own]
+    stack = StackedModel(members, poses)
+    union = np.concatenate([transform_points(p, q) for p, q in zip(poses, own, strict=True)])
+    queries = world[::7] + rng.normal(0, 0.05, (len(world[::7]), 3))
+    d, i = stack.plane_index.nearest(queries, 0.3)
+    expected = np.min(np.linalg.norm(queries[:, None, :] - union[None, ::1, :], axis=2), axis=1)
+    hit = expected <= 0.3
+    np.testing.assert_array_equal(i >= 0, hit)
+    np.testing.assert_allclose(d[hit], expected[hit], atol=1e-9)
+    np.testing.assert_allclose(stack.sample_points(i[hit]), union[i[hit]], atol=1e-9)
+    normals, usable = stack.plane_normals_for(i[hit])
+    paired = union[i[hit]]
+    # floor points at least a cube (1 m) away from the walls: cubes across an edge mix two planes
+    on_floor = (np.abs(paired[:, 2]) < 1e-9) & (paired[:, 1] < 1.5) & (paired[:, 0] > -2.5)
+    assert usable[on_floor].mean() > 0.9
+    np.testing.assert_allclose(np.abs(normals[on_floor & usable][:, 2]), 1.0, atol=1e-6)  # turned into the world
+    # per-cube normals of a plane are its normal
+    n, ok = cell_normals(floor, 1.0)
+    assert ok.mean() > 0.9 and np.allclose(np.abs(n[ok, 2]), 1.0)
+    # ICP against the stack finds a displaced copy of the world
+    moved = pose_from_xyzrpy(0.08, -0.05, 0.02, 0.0, 0.0, 0.02)
+    data = transform_points(np.linalg.inv(moved), world[1::3])
+    result = icp(stack, data, np.eye(4))
+    dt, dr = pose_difference(result.transform, moved)
+    assert result.converged and dt < 1e-3 and dr < 1e-3, (dt, dr)
