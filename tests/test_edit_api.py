@@ -21,7 +21,7 @@ LOOP = "/api/sessions/loop"
 def loop_scans(tmp_path_factory):
     """The simulated loop's scan files, written once (sessions over them are cheap)."""
     folder = tmp_path_factory.mktemp("loop-scans")
-    truth = write_loop_scans(folder)
+    truth = write_loop_scans(folder, points=20000)  # 6,000 points per scan leave the 0-7 loop ambiguous
     return folder, truth
 
 

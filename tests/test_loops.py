@@ -91,3 +91,34 @@ def test_verify_accepts_the_true_loop_from_a_drifted_start_and_rejects_a_wrong_o
     assert not verify(wrong, ModelIndex(points[0]), points[4], ICPConfig()).accepted
     far = octree_overlap(occupancy, points[9], make_pose(np.eye(3), [200.0, 0.0, 0.0]))
     assert far == 0.0
+
+
+@pytest.mark.parametrize("points", [6000, 20000])
+def test_verify_rejects_an_ambiguous_sparse_loop_and_accepts_the_same_loop_when_dense(points: int) -> None:
+    """The workbench's 8-scan loop (``tests.session_fixtures.write_loop_scans``) from its drifting odometry.
+
+    With 6,000 points per scan the 0-7 overlap is mostly floor: ICP found fitness 0.33 and RMS
+    0.13 m at a transform metres off, and used to accept it. With 20,000 points the same loop
+    from the same start is pinned down and must be accepted, close to the truth.
+    """
+    sim = simulated_loop(scans=8, points=points, seed=1, loop_length=16.0, loop_width=10.0)
+    cloud = [s.points[reduce_points(s.points, 0.1)] for s in sim.sequence]
+    odometry = [s.pose for s in sim.sequence]
+    start = invert(odometry[0]) @ odometry[7]
+    truth = invert(sim.truth[0]) @ sim.truth[7]
+    assert pose_difference(start, truth)[0] > 1.0  # the loop really has to be closed
+    hypothesis = LoopHypothesis(0, 7, 1.0, 46.0, transform=start)
+    verdict = verify(hypothesis, ModelIndex(cloud[0]), cloud[7], ICPConfig(data_voxel_size=0.0))
+    dt, dr = pose_difference(verdict.transform, truth)
+    if points == 6000:
+        assert not verdict.accepted and "pin down the translation" in verdict.reason, verdict.reason
+        assert dt > 0.3  # what the old verification accepted
+        # the second opinion alone catches it too: ICP from the octree search ends elsewhere
+        alone = verify(
+            hypothesis, ModelIndex(cloud[0]), cloud[7], ICPConfig(data_voxel_size=0.0), LoopConfig(min_constraint=0)
+        )
+        assert not alone.accepted and "ambiguous" in alone.reason and alone.disagreement > 0.3, alone.reason
+    else:
+        assert verdict.accepted, verdict.reason
+        assert verdict.constraint >= LoopConfig().min_constraint and verdict.disagreement < 0.05
+        assert dt < 0.02 and np.degrees(dr) < 0.5, (dt, np.degrees(dr))
