@@ -22,6 +22,7 @@ from app.traces import TraceRecorder
 from app.workbench import Workbench
 from slam6d.errors import Slam6dError
 from slam6d.geometry import Matrix, rotation_to_quaternion
+from slam6d.session import CACHE_DIR
 
 COLOUR_MODES = ("scan", "height", "residual")
 _PAIR_DATA = (255, 120, 0)
@@ -173,7 +174,12 @@ class SessionViewer:
         sequence = self.state.sequence()
         voxel = float(self.state.session.config.engine.get("display_voxel_size", 0.05))
         with self.lock:
-            selection = scene.budget_selection([s.points for s in sequence.scans], int(self.budget.value), voxel)
+            selection = scene.cached_budget_selection(
+                self.state.session.folder / CACHE_DIR / "display.npz",
+                [s.points for s in sequence.scans],
+                int(self.budget.value),
+                voxel,
+            )
             self.local = [s.points[idx].astype(np.float32) for s, idx in zip(sequence.scans, selection, strict=True)]
             self.poses = [s.pose.copy() for s in sequence.scans]
             self.residuals = None

@@ -21,6 +21,31 @@ def test_budget_selection_keeps_the_map_within_budget_and_uses_real_points():
     assert all(len(s) <= 64 for s in coarse)
 
 
+def test_cached_budget_selection_reuses_only_for_the_same_scans(tmp_path, monkeypatch):
+    rng = np.random.default_rng(2)
+    clouds = [rng.uniform(-10, 10, (20_000, 3)) for _ in range(3)]
+    cache = tmp_path / "cache" / "display.npz"
+    first = scene.cached_budget_selection(cache, clouds, budget=9_000, voxel_size=0.05)
+    assert cache.exists()
+    expected = scene.budget_selection(clouds, budget=9_000, voxel_size=0.05)
+    assert all(np.array_equal(a, b) for a, b in zip(first, expected, strict=True))
+
+    def no_recompute(*args, **kwargs):  # type: ignore[no-untyped-def]
+        raise AssertionError("recomputed although nothing changed")
+
+    monkeypatch.setattr(scene, "budget_selection", no_recompute)
+    again = scene.cached_budget_selection(cache, clouds, budget=9_000, voxel_size=0.05)
+    assert all(np.array_equal(a, b) for a, b in zip(again, expected, strict=True))
+    monkeypatch.undo()
+    moved = [clouds[0], clouds[1] + 1.0, clouds[2]]  # one scan changed: its choice must be recomputed
+    changed = scene.cached_budget_selection(cache, moved, budget=9_000, voxel_size=0.05)
+    assert all(np.array_equal(a, b) for a, b in zip(changed, scene.budget_selection(moved, 9_000, 0.05), strict=True))
+    smaller = scene.cached_budget_selection(cache, moved, budget=3_000, voxel_size=0.05)
+    assert sum(len(s) for s in smaller) <= 3_000
+    cache.write_bytes(b"damaged")
+    assert sum(len(s) for s in scene.cached_budget_selection(cache, moved, budget=3_000, voxel_size=0.05)) <= 3_000
+
+
 def test_far_from_origin_local_points_are_never_sent_as_float16():
     near = np.array([[0.0, 0.0, 0.0], [31.0, -5.0, 2.0]])
     assert scene.precision_for(near) == "float16"
