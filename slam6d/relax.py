@@ -12,7 +12,12 @@ Two methods, both over the same neighbour graph (scans whose reduced clouds shar
   distance each round, and a sparse solve); the next round re-pairs from the new poses. No pair is
   re-matched by ICP, so a round costs one closest-point query per data point of each edge; each
   edge gets an even share of ``round_points`` data points, so that every overlapping pair, the
-  long-range ones that make a map globally consistent included, can take part.
+  long-range ones that make a map globally consistent included, can take part. Each scan's
+  plane-sample tree (built once) is queried once per round by the points of all its neighbours
+  at once, the Jacobians are built for all pairs of a scan together, and the joint system goes to
+  :class:`slam6d.posegraph.BlockSystem`: on BALM hall (89 scans, 3916 overlapping pairs) a round
+  costs about a second instead of nine. Rounds stop once a round at the final robust scale no
+  longer lowers χ² by ``chi2_tolerance`` (re-pairing keeps scans jittering below a millimetre).
   :func:`lum` relaxes a graph of relative-pose edges (:mod:`slam6d.posegraph`).
 
 Residuals are reported before and after as the RMS closest-point distance over all neighbour
@@ -29,8 +34,6 @@ from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 from numpy.typing import NDArray
 
 from slam6d import nn
@@ -38,6 +41,7 @@ from slam6d.errors import RegistrationError, Slam6dError
 from slam6d.geometry import Matrix, invert, make_pose, transform_points
 from slam6d.icp import ICPConfig, ModelIndex, correspondences, icp
 from slam6d.posegraph import (
+    BlockSystem,
     PoseEdge,
     PoseGraphResult,
     RelaxationError,
@@ -80,6 +84,7 @@ class RelaxationConfig:
     edge_points: int = 4000  # data points per edge (evenly thinned), at most
     round_points: int = 2_000_000  # data points per LUM round over all edges: many edges get fewer points each
     tolerance: float = 0.0005  # metres: stop LUM rounds when no scan moves more
+    chi2_tolerance: float = 0.002  # or when a round at the final robust scale lowers χ² by less than this fraction
     damping: float = 1e-3  # Levenberg damping of the joint LUM step, relative to the diagonal
     robust_scale: float = 0.05  # metres: final Cauchy scale of the LUM point-to-plane residuals (0 = least squares)
 
@@ -111,6 +116,7 @@ class ScanModels:
         self.points = [np.ascontiguousarray(p, dtype=np.float64) for p in points]
         self.config = config
         self._indices: list[ModelIndex | None] = list(indices) if indices is not None else [None] * len(points)
+        self._thinned: dict[tuple[int, int], FloatArray] = {}
 
     def __len__(self) -> int:
         return len(self.points)
@@ -129,10 +135,14 @@ class ScanModels:
         return model
 
     def thinned(self, k: int, count: int) -> FloatArray:
+        """``count`` points spread evenly over the scan (all of them when it has fewer), cached."""
         pts = self.points[k]
         if len(pts) <= count:
             return pts
-        return pts[np.linspace(0, len(pts) - 1, count).round().astype(np.int64)]
+        key = (k, count)
+        if key not in self._thinned:
+            self._thinned[key] = pts[np.linspace(0, len(pts) - 1, count).round().astype(np.int64)]
+        return self._thinned[key]
 
     def extent(self, k: int) -> float:
         return float(np.percentile(np.linalg.norm(self.points[k], axis=1), 95))
@@ -185,6 +195,30 @@ class UnionIndex(ModelIndex):
         return self._sample_index.points, self._sample_normals, self._sample_usable
 
 
+def _placed_in(
+    models: ScanModels, poses: Sequence[Matrix], i: int, others: Sequence[int], count: int
+) -> tuple[FloatArray, FloatArray, NDArray[np.int64], FloatArray]:
+    """Thinned points of each scan in ``others`` placed in scan i's frame, stacked for one query.
+
+    Returns the placed points, the same points in their own frames, the position in ``others``
+    each point came from, and the relative poses inv(X_i) X_j. Querying scan i's tree once with
+    all of them replaces one query (and its Python overhead) per pair.
+    """
+    inverse = invert(poses[i])
+    relative = np.stack([inverse @ poses[j] for j in others])
+    own = [models.thinned(j, count) for j in others]
+    placed = np.concatenate([transform_points(r, d) for r, d in zip(relative, own, strict=True)])
+    source = np.repeat(np.arange(len(others)), [len(d) for d in own])
+    return placed, np.concatenate(own), source, relative
+
+
+def _by_model(pairs: Sequence[NeighbourPair]) -> dict[int, list[int]]:
+    grouped: dict[int, list[int]] = {}
+    for pair in pairs:
+        grouped.setdefault(pair.i, []).append(pair.j)
+    return grouped
+
+
 def neighbour_pairs(
     models: ScanModels,
     poses: Sequence[Matrix],
@@ -196,35 +230,39 @@ def neighbour_pairs(
 
     Only pairs whose scanned regions can touch (distance below the sum of their 95th-percentile
     ranges) are counted, on an evenly thinned copy of the data scan scaled back up; that turns an
-    O(n²) sweep of full queries into a handful of cheap ones per scan.
+    O(n²) sweep of full queries into one cheap query per scan.
     """
     chosen = sorted(set(range(len(models))) if members is None else set(members))
     extents = {k: models.extent(k) for k in chosen}
     found = []
     d = models.config.max_distance
     for a_pos, i in enumerate(chosen):
-        for j in chosen[a_pos + 1 :]:
-            if np.linalg.norm(poses[i][:3, 3] - poses[j][:3, 3]) > extents[i] + extents[j]:
-                continue
-            data = models.thinned(j, sample)
-            scale = len(models.points[j]) / len(data)
-            _, idx = models.index(i).nearest(transform_points(invert(poses[i]) @ poses[j], data), d)
-            count = int(np.count_nonzero(idx >= 0) * scale)
+        near = [
+            j
+            for j in chosen[a_pos + 1 :]
+            if np.linalg.norm(poses[i][:3, 3] - poses[j][:3, 3]) <= extents[i] + extents[j]
+        ]
+        if not near:
+            continue
+        placed, _, source, _ = _placed_in(models, poses, i, near, sample)
+        _, idx = models.index(i).nearest(placed, d)
+        hits = np.bincount(source[idx >= 0], minlength=len(near))
+        sizes = np.bincount(source, minlength=len(near))
+        for j, hit, size in zip(near, hits, sizes, strict=True):
+            count = int(hit * len(models.points[j]) / size)
             if count > min_pairs:
                 found.append(NeighbourPair(i, j, count))
     return found
 
 
 def pair_residual(
-    models: ScanModels, poses: Sequence[Matrix], pairs: Sequence[NeighbourPair], sample: int = 500
+    models: ScanModels, poses: Sequence[Matrix], pairs: Sequence[NeighbourPair], sample: int = 300
 ) -> float:
     """RMS closest-point distance over all neighbour pairs (pairs within the ICP max distance), metres."""
     total, count = 0.0, 0
-    for pair in pairs:
-        data = models.thinned(pair.j, sample)
-        dist, idx = models.index(pair.i).nearest(
-            transform_points(invert(poses[pair.i]) @ poses[pair.j], data), models.config.max_distance
-        )
+    for i, others in _by_model(pairs).items():
+        placed, _, _, _ = _placed_in(models, poses, i, others, sample)
+        dist, idx = models.index(i).nearest(placed, models.config.max_distance)
         ok = idx >= 0
         total += float(np.sum(dist[ok] ** 2))
         count += int(ok.sum())
@@ -378,31 +416,37 @@ def match_edge(models: ScanModels, poses: Sequence[Matrix], pair: NeighbourPair,
     return PoseEdge(pair.i, pair.j, result.transform, info)
 
 
-def _pair_system(
-    model: ModelIndex, data: FloatArray, relative: Matrix, max_distance: float, robust_scale: float = 0.0
-) -> tuple[FloatArray, FloatArray, float, int]:
-    """Normal-equation blocks of one neighbour pair's point-to-plane residuals at the current poses.
+def _model_system(
+    models: ScanModels,
+    current: Sequence[Matrix],
+    i: int,
+    others: Sequence[int],
+    per_edge: int,
+    robust_scale: float,
+) -> tuple[list[int], FloatArray, FloatArray, float, int]:
+    """Normal-equation blocks of every pair (i, j), j in ``others``, from one query of scan i's plane sample.
 
-    Data points ``p`` of scan j are placed in scan i's frame by ``relative`` = inv(X_i) X_j and
-    paired with the closest point ``m`` (normal ``n``) of scan i's plane sample. With both poses
-    perturbed on the right, X <- X Exp([ρ, φ]), the residual r = n·(q - m), q = relative·p, moves by
-    J_i = [-n, -(q × n)] and J_j = [R_ij^T n, p × R_ij^T n]. Returns the 12x12 block A^T A (order
-    i then j), A^T W r, the sum of r² and the pair count. With ``robust_scale`` c > 0 each pair is
-    weighted by Cauchy's w = 1 / (1 + (r/c)²) (iteratively reweighted least squares): pairs of
-    different surfaces that happen to lie within the max distance then barely pull.
+    Data points ``p`` of scan j are placed in scan i's frame by inv(X_i) X_j and paired with the
+    closest point ``m`` (normal ``n``) of scan i's plane sample. With both poses perturbed on the
+    right, X <- X Exp([ρ, φ]), the residual r = n·(q - m), q = inv(X_i) X_j p, moves by
+    J_i = [-n, -(q × n)] and J_j = [R_ij^T n, p × R_ij^T n]. Returns the scans j that got pairs,
+    their 12x12 blocks J^T W J (order i then j) and J^T W r, the sum of r² and the pair count.
+    With ``robust_scale`` c > 0 each pair is weighted by Cauchy's w = 1 / (1 + (r/c)²)
+    (iteratively reweighted least squares): pairs of different surfaces that happen to lie within
+    the max distance then barely pull.
     """
-    q = transform_points(relative, data)
-    _, idx = model.plane_index.nearest(q, max_distance)
-    found = np.flatnonzero(idx >= 0)
+    model = models.index(i)
+    q, p, source, relative = _placed_in(models, current, i, others, per_edge)
+    _, idx = model.plane_index.nearest(q, models.config.max_distance)
     _, all_normals, all_usable = model.plane_normals()  # every sample normal at once: one kernel call per scan
-    normals, usable = all_normals[idx[found]], all_usable[idx[found]]
-    found, normals = found[usable], normals[usable]
+    found = np.flatnonzero(idx >= 0)
+    found = found[all_usable[idx[found]]]
     if len(found) == 0:
-        return np.zeros((12, 12)), np.zeros(12), 0.0, 0
-    q, p = q[found], data[found]
-    m = model.plane_index.points[idx[found]]
-    residual = np.einsum("ij,ij->i", q - m, normals)
-    n_j = normals @ relative[:3, :3]  # rows: R_ij^T n
+        return [], np.zeros((0, 12, 12)), np.zeros((0, 12)), 0.0, 0
+    normals = all_normals[idx[found]]
+    q, p, source = q[found], p[found], source[found]
+    residual = np.einsum("ij,ij->i", q - model.plane_index.points[idx[found]], normals)
+    n_j = np.einsum("nk,nkl->nl", normals, relative[source, :3, :3])  # rows: R_ij^T n
     jac = np.empty((len(found), 12))
     jac[:, :3] = -normals
     jac[:, 3:6] = -np.cross(q, normals)
@@ -410,68 +454,62 @@ def _pair_system(
     jac[:, 9:] = np.cross(p, n_j)
     weight = 1.0 / (1.0 + (residual / robust_scale) ** 2) if robust_scale > 0 else np.ones(len(found))
     weighted = jac * weight[:, None]
-    return weighted.T @ jac, weighted.T @ residual, float(residual @ residual), len(found)
+    starts = np.flatnonzero(np.diff(source, prepend=-1))  # points of one pair are contiguous
+    blocks = np.add.reduceat(weighted[:, :, None] * jac[:, None, :], starts)
+    gradients = np.add.reduceat(weighted * residual[:, None], starts)
+    return [others[s] for s in source[starts]], blocks, gradients, float(residual @ residual), len(found)
 
 
 def _joint_step(
     models: ScanModels,
     current: list[Matrix],
     graph_pairs: Sequence[NeighbourPair],
-    free: dict[int, int],
+    fixed: set[int],
     config: RelaxationConfig,
     robust_scale: float,
 ) -> tuple[dict[int, Matrix], float, int]:
     """One Gauss-Newton step of all scans at once over the current closest-point pairs (LUM's round).
 
-    Returns the new poses of the free scans, the sum of squared residuals before the step and the
-    number of point pairs. A little Levenberg damping keeps directions no pair constrains (a scan
-    seeing one flat wall) from running away.
+    Each scan is queried once, by the thinned points of all its graph neighbours at once; the
+    joint system is solved by :class:`slam6d.posegraph.BlockSystem`. Returns the new poses of the
+    free scans, the sum of squared residuals before the step and the number of point pairs. A
+    little Levenberg damping keeps directions no pair constrains (a scan seeing one flat wall)
+    from running away.
     """
-    size = 6 * len(free)
-    rows: list[NDArray[np.int64]] = []
-    cols: list[NDArray[np.int64]] = []
-    values: list[FloatArray] = []
-    gradient = np.zeros(size)
-    total, count = 0.0, 0
-    block = np.arange(6)
-    per_edge = int(np.clip(config.round_points // max(len(graph_pairs), 1), 100, config.edge_points))
-    for pair in graph_pairs:
-        data = models.thinned(pair.j, per_edge)
-        relative = invert(current[pair.i]) @ current[pair.j]
-        h, g, sq, n = _pair_system(models.index(pair.i), data, relative, models.config.max_distance, robust_scale)
+    count = len(current)
+    diag = np.zeros((count, 6, 6))
+    rhs = np.zeros((count, 6))
+    ei: list[int] = []
+    ej: list[int] = []
+    off: list[FloatArray] = []
+    total, pairs = 0.0, 0
+    # an even share of the round's points per edge: every overlapping pair, the long-range ones
+    # included, takes part (giving weakly overlapping pairs more points made the map no more consistent)
+    per_edge = int(np.clip(config.round_points // max(len(graph_pairs), 1), 50, config.edge_points))
+    for i, others in _by_model(graph_pairs).items():
+        js, blocks, gradients, sq, n = _model_system(models, current, i, others, per_edge, robust_scale)
         total += sq
-        count += n
-        if n == 0:
-            continue
-        slots = [(0, free.get(pair.i)), (6, free.get(pair.j))]
-        for a_off, a_var in slots:
-            if a_var is None:
-                continue
-            gradient[6 * a_var + block] += g[a_off : a_off + 6]
-            for b_off, b_var in slots:
-                if b_var is None:
-                    continue
-                r, c = np.meshgrid(6 * a_var + block, 6 * b_var + block, indexing="ij")
-                rows.append(r.ravel())
-                cols.append(c.ravel())
-                values.append(h[a_off : a_off + 6, b_off : b_off + 6].ravel())
-    if not values:
+        pairs += n
+        for j, h, g in zip(js, blocks, gradients, strict=True):
+            diag[i] += h[:6, :6]
+            diag[j] += h[6:, 6:]
+            rhs[i] -= g[:6]
+            rhs[j] -= g[6:]
+            ei.append(i)
+            ej.append(j)
+            off.append(h[:6, 6:])
+    if not off:
         raise RelaxationError("LUM: no neighbour pair has point pairs with usable normals at the current poses")
-    hessian = sp.csc_matrix((np.concatenate(values), (np.concatenate(rows), np.concatenate(cols))), shape=(size, size))
-    diagonal = hessian.diagonal()
-    damped = hessian + sp.diags(config.damping * diagonal + 1e-9 * max(float(diagonal.max()), 1.0))
-    try:
-        step = spla.splu(damped.tocsc(), permc_spec="MMD_AT_PLUS_A").solve(-gradient)
-    except RuntimeError as exc:
-        raise RelaxationError(f"LUM: the joint normal equations are singular ({exc})") from exc
-    if not np.isfinite(step).all():
-        raise RelaxationError("LUM: the joint solve produced a non-finite step (ill-conditioned neighbour graph)")
-    delta = step.reshape(-1, 6)
+    unused = [k for k in range(count) if k not in fixed and not diag[k].any()]
+    system = BlockSystem(count, fixed | set(unused), np.array(ei), np.array(ej))
+    scale = np.einsum("nii->ni", diag)
+    damped = diag + (config.damping * scale + 1e-9 * max(float(scale.max()), 1.0))[:, :, None] * np.eye(6)
+    step = system.solve(damped, np.stack(off), rhs)
     moved = {}
-    for k, var in free.items():
-        motion = make_pose(so3_exp(delta[var, 3:]), delta[var, :3])
-        moved[k] = current[k] @ motion
-    return moved, total, count
+    for k in range(count):
+        if k not in fixed and k not in unused:
+            moved[k] = current[k] @ make_pose(so3_exp(step[k, 3:]), step[k, :3])
+    return moved, total, pairs
 
 
 def lum_relaxation(
@@ -494,10 +532,11 @@ def lum_relaxation(
     outside = set(range(len(models))) - set(chosen)
     check_connected(len(models), [(p.i, p.j) for p in graph_pairs], fixed_set | outside)
     residual_before = pair_residual(models, current, pairs)
-    free = {k: n for n, k in enumerate(k for k in chosen if k not in fixed_set)}
+    held = fixed_set | outside
     chi2_before: float | None = None
     chi2_after: float | None = None
     rounds = 0
+    previous: float | None = None  # χ² of the last round at the final robust scale
     for rounds in range(1, config.max_rounds + 1):
         _check_cancel(cancel)
         # graduated robustness: a tight kernel from the start would ignore exactly the centimetre
@@ -505,7 +544,7 @@ def lum_relaxation(
         scale = config.robust_scale
         if scale > 0:
             scale = max(scale, 0.5**rounds * models.config.max_distance)
-        moved_poses, chi2, _ = _joint_step(models, current, graph_pairs, free, config, scale)
+        moved_poses, chi2, _ = _joint_step(models, current, graph_pairs, held, config, scale)
         if chi2_before is None:
             chi2_before = chi2
         chi2_after = chi2
@@ -522,7 +561,11 @@ def lum_relaxation(
             current[k] = pose
         if progress is not None:
             progress(rounds, chi2, moved)
-        if largest <= config.tolerance and scale <= config.robust_scale:
+        # re-pairing keeps every scan jittering by a fraction of a millimetre, so a round that no
+        # longer lowers the pairs' χ² ends the relaxation as well
+        settled = previous is not None and previous - chi2 <= config.chi2_tolerance * previous
+        previous = chi2 if scale <= config.robust_scale else None
+        if (largest <= config.tolerance or settled) and scale <= config.robust_scale:
             break
     after = carry_forward(before, current, chosen)
     return RelaxationResult(
