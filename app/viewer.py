@@ -196,7 +196,7 @@ class SessionViewer:
         until all are sent does not work: viser drops a queued "hidden" when "shown" follows.)
         """
         buffer = self.server._websock_server.get_message_buffer()  # no public setting for this
-        buffer.max_window_size = max(buffer.max_window_size, 4 * len(self.local) + 16)
+        buffer.max_window_size = max(buffer.max_window_size, 4 * len(self.local) + 1024)  # + a new client's GUI backlog
         with self.server.atomic():
             for node in self.nodes:
                 node.remove()
