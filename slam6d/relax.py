@@ -84,7 +84,7 @@ class RelaxationConfig:
     edge_points: int = 4000  # data points per edge (evenly thinned), at most
     round_points: int = 2_000_000  # data points per LUM round over all edges: many edges get fewer points each
     tolerance: float = 0.0005  # metres: stop LUM rounds when no scan moves more
-    chi2_tolerance: float = 0.002  # or when a round at the final robust scale lowers χ² by less than this fraction
+    chi2_tolerance: float = 0.005  # or when a round at the final robust scale lowers χ² by less than this fraction
     damping: float = 1e-3  # Levenberg damping of the joint LUM step, relative to the diagonal
     robust_scale: float = 0.05  # metres: final Cauchy scale of the LUM point-to-plane residuals (0 = least squares)
 
@@ -256,7 +256,7 @@ def neighbour_pairs(
 
 
 def pair_residual(
-    models: ScanModels, poses: Sequence[Matrix], pairs: Sequence[NeighbourPair], sample: int = 300
+    models: ScanModels, poses: Sequence[Matrix], pairs: Sequence[NeighbourPair], sample: int = 150
 ) -> float:
     """RMS closest-point distance over all neighbour pairs (pairs within the ICP max distance), metres."""
     total, count = 0.0, 0
@@ -438,12 +438,11 @@ def _model_system(
     model = models.index(i)
     q, p, source, relative = _placed_in(models, current, i, others, per_edge)
     _, idx = model.plane_index.nearest(q, models.config.max_distance)
-    _, all_normals, all_usable = model.plane_normals()  # every sample normal at once: one kernel call per scan
     found = np.flatnonzero(idx >= 0)
-    found = found[all_usable[idx[found]]]
+    normals, usable = model.plane_normals_for(idx[found])  # estimated once, where pairs first need them
+    found, normals = found[usable], normals[usable]
     if len(found) == 0:
         return [], np.zeros((0, 12, 12)), np.zeros((0, 12)), 0.0, 0
-    normals = all_normals[idx[found]]
     q, p, source = q[found], p[found], source[found]
     residual = np.einsum("ij,ij->i", q - model.plane_index.points[idx[found]], normals)
     n_j = np.einsum("nk,nkl->nl", normals, relative[source, :3, :3])  # rows: R_ij^T n

@@ -176,7 +176,11 @@ def test_drifted_odometry_reproduces_the_agreed_balm_generator(shared_data) -> N
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(reason="targets not met yet: self-consistency mean 3.0 cm (20-70 7.5 cm), 57-88 1.8 cm, RPE 0.61 cm")
+@pytest.mark.xfail(
+    reason="targets not met: self-consistency mean 3.0 cm (20-70 7.5 cm: its own ICP fit is 11 % / 16 cm rms and "
+    "small_gicp + gtsam gets 8.8 cm there), 57-88 1.8 cm; RPE 0.60 cm / 0.047 deg met",
+    strict=False,
+)
 def test_balm_hall_from_drifted_odometry(shared_data) -> None:  # type: ignore[no-untyped-def]
     from benchmarks.trajectory import self_consistency
     from slam6d.drift import drifted_odometry
@@ -188,12 +192,17 @@ def test_balm_hall_from_drifted_odometry(shared_data) -> None:  # type: ignore[n
     for scan, pose in zip(sequence, drifted_odometry(reference, seed=1), strict=True):
         scan.pose, scan.has_pose = pose, True
     pipeline = Pipeline(sequence, PipelineConfig())
-    pipeline.run()
+    report = pipeline.run()
     rpe = relative_pose_error(pipeline.poses, reference)
-    assert rpe.translation_mean <= 0.006 and rpe.rotation_mean_deg <= 0.05
     moved = self_consistency(sequence, pipeline.poses)
-    assert moved[(57, 88)] <= 0.01
-    assert float(np.mean(list(moved.values()))) <= 0.015
+    mean = float(np.mean(list(moved.values())))
+    figures = (
+        f"RPE {100 * rpe.translation_mean:.2f} cm / {rpe.rotation_mean_deg:.3f} deg, self-consistency {100 * mean:.2f} cm "
+        f"({', '.join(f'{i}-{j} {100 * v:.1f}' for (i, j), v in moved.items())}), stages {report.stage_seconds}"
+    )
+    assert rpe.translation_mean <= 0.006 and rpe.rotation_mean_deg <= 0.05, figures
+    assert moved[(57, 88)] <= 0.01, figures
+    assert mean <= 0.015, figures
 
 
 BUNNY_RING = ("bun000", "bun045", "bun090", "bun180", "bun270", "bun315")
