@@ -492,7 +492,8 @@ class Pipeline:
             for hyp in candidates:
                 if hyp.reason or len(tried) >= cfg.candidates_per_scan:
                     break
-                tried.append(verify(hyp, self.models.index(hyp.i), self.models.points[j], self._icp_config, cfg))
+                # the thinned data scan, as in sequential matching: verification runs ICP three times
+                tried.append(verify(hyp, self.models.index(hyp.i), self._data_points(j), self._icp_config, cfg))
             if not tried:
                 continue
             last_tried = j

@@ -113,7 +113,7 @@ def test_verify_rejects_an_ambiguous_sparse_loop_and_accepts_the_same_loop_when_
     if points == 6000:
         assert not verdict.accepted and "pin down the translation" in verdict.reason, verdict.reason
         assert dt > 0.3  # what the old verification accepted
-        # the second opinion alone catches it too: ICP from the octree search ends elsewhere
+        # the restarts alone catch it too: ICP shifted along the weakest direction ends elsewhere
         alone = verify(
             hypothesis, ModelIndex(cloud[0]), cloud[7], ICPConfig(data_voxel_size=0.0), LoopConfig(min_constraint=0)
         )
