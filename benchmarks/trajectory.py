@@ -239,9 +239,14 @@ def simulated(directory: Path, peers: bool, only: str | None, method: str) -> No
     truth = [UOS.pose_to_canonical(p) for p in read_kitti_poses(directory / "ground_truth_kitti.txt")]
     out = directory.parent / (directory.name + "_out")
     began = time.perf_counter()
+    cpu_before = os.times()
     command = [sys.executable, "-m", "slam6d.cli", "run", str(directory), "--format", "uos", "--out", str(out)]
     done = subprocess.run([*command, "--method", method], capture_output=True, text=True, check=False)
     wall = time.perf_counter() - began
+    cpu_after = os.times()  # the child's user + sys: unlike wall time, barely inflated by other jobs
+    cpu = (cpu_after.children_user - cpu_before.children_user) + (
+        cpu_after.children_system - cpu_before.children_system
+    )
     if done.returncode != 0:
         print(done.stdout, done.stderr)
         return
@@ -249,7 +254,10 @@ def simulated(directory: Path, peers: bool, only: str | None, method: str) -> No
     ate = absolute_trajectory_error(estimate, truth)
     times = [line for line in done.stdout.splitlines() if line.startswith("times")]
     print(f"simulated loop {directory} ({len(truth)} scans)")
-    print(f"  slam6d run ({method}): ATE {100 * ate.rmse:.2f} cm, {wall:.1f} s wall incl. start-up ({load()})")
+    print(
+        f"  slam6d run ({method}): ATE {100 * ate.rmse:.2f} cm, {wall:.1f} s wall incl. start-up,"
+        f" {cpu:.1f} s CPU (user + sys) ({load()})"
+    )
     print(f"    {times[0] if times else ''}")
     if peers:
         sequence = read_sequence(directory, "uos")
