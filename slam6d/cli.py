@@ -247,6 +247,9 @@ def run(
     max_range: Annotated[float | None, typer.Option(help="Drop points farther than this (input units).")] = None,
     voxel: Annotated[float, typer.Option(help="Reduction voxel in metres (one real point per voxel); 0 = off.")] = 0.1,
     matching: Annotated[str, typer.Option(help="metascan (against recent registered scans) or pairwise.")] = "metascan",
+    metascan_scans: Annotated[
+        int, typer.Option(help="Registered scans the metascan holds (each searched with its own kd-tree).")
+    ] = 1,
     method: Annotated[
         str, typer.Option(help="ICP error metric: point_to_plane or point_to_point (the paper's SVD).")
     ] = "point_to_plane",
@@ -268,6 +271,7 @@ def run(
         config = PipelineConfig(
             voxel_size=voxel,
             matching=matching,
+            metascan_scans=metascan_scans,
             icp=ICPConfig(max_distance=max_distance, method=method),
             octree_guess=guess,
             loops=loops,
