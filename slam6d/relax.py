@@ -16,8 +16,9 @@ Two methods, both over the same neighbour graph (scans whose reduced clouds shar
   plane-sample tree (built once) is queried once per round by the points of all its neighbours
   at once, the Jacobians are built for all pairs of a scan together, and the joint system goes to
   :class:`slam6d.posegraph.BlockSystem`: on BALM hall (89 scans, 3916 overlapping pairs) a round
-  costs about a second instead of nine. Rounds stop once a round at the final robust scale no
-  longer lowers χ² by ``chi2_tolerance`` (re-pairing keeps scans jittering below a millimetre).
+  costs about a second instead of nine. Rounds stop once a round at the final robust scale
+  changes the Cauchy-weighted cost by less than ``chi2_tolerance`` (re-pairing keeps scans
+  jittering below a millimetre, so the movement alone may never fall under ``tolerance``).
   :func:`lum` relaxes a graph of relative-pose edges (:mod:`slam6d.posegraph`).
 
 Residuals are reported before and after as the RMS closest-point distance over all neighbour
@@ -84,7 +85,7 @@ class RelaxationConfig:
     edge_points: int = 4000  # data points per edge (evenly thinned), at most
     round_points: int = 2_000_000  # data points per LUM round over all edges: many edges get fewer points each
     tolerance: float = 0.0005  # metres: stop LUM rounds when no scan moves more
-    chi2_tolerance: float = 0.005  # or when a round at the final robust scale lowers χ² by less than this fraction
+    chi2_tolerance: float = 0.005  # or when a round at the final robust scale changes the robust cost less (fraction)
     damping: float = 1e-3  # Levenberg damping of the joint LUM step, relative to the diagonal
     robust_scale: float = 0.05  # metres: final Cauchy scale of the LUM point-to-plane residuals (0 = least squares)
 
@@ -423,14 +424,15 @@ def _model_system(
     others: Sequence[int],
     per_edge: int,
     robust_scale: float,
-) -> tuple[list[int], FloatArray, FloatArray, float, int]:
+) -> tuple[list[int], FloatArray, FloatArray, float, float, int]:
     """Normal-equation blocks of every pair (i, j), j in ``others``, from one query of scan i's plane sample.
 
     Data points ``p`` of scan j are placed in scan i's frame by inv(X_i) X_j and paired with the
     closest point ``m`` (normal ``n``) of scan i's plane sample. With both poses perturbed on the
     right, X <- X Exp([ρ, φ]), the residual r = n·(q - m), q = inv(X_i) X_j p, moves by
     J_i = [-n, -(q × n)] and J_j = [R_ij^T n, p × R_ij^T n]. Returns the scans j that got pairs,
-    their 12x12 blocks J^T W J (order i then j) and J^T W r, the sum of r² and the pair count.
+    their 12x12 blocks J^T W J (order i then j) and J^T W r, the sums of r² and of w r², and the
+    pair count.
     With ``robust_scale`` c > 0 each pair is weighted by Cauchy's w = 1 / (1 + (r/c)²)
     (iteratively reweighted least squares): pairs of different surfaces that happen to lie within
     the max distance then barely pull.
@@ -442,7 +444,7 @@ def _model_system(
     normals, usable = model.plane_normals_for(idx[found])  # estimated once, where pairs first need them
     found, normals = found[usable], normals[usable]
     if len(found) == 0:
-        return [], np.zeros((0, 12, 12)), np.zeros((0, 12)), 0.0, 0
+        return [], np.zeros((0, 12, 12)), np.zeros((0, 12)), 0.0, 0.0, 0
     q, p, source = q[found], p[found], source[found]
     residual = np.einsum("ij,ij->i", q - model.plane_index.points[idx[found]], normals)
     n_j = np.einsum("nk,nkl->nl", normals, relative[source, :3, :3])  # rows: R_ij^T n
@@ -456,7 +458,8 @@ def _model_system(
     starts = np.flatnonzero(np.diff(source, prepend=-1))  # points of one pair are contiguous
     blocks = np.add.reduceat(weighted[:, :, None] * jac[:, None, :], starts)
     gradients = np.add.reduceat(weighted * residual[:, None], starts)
-    return [others[s] for s in source[starts]], blocks, gradients, float(residual @ residual), len(found)
+    js = [others[s] for s in source[starts]]
+    return js, blocks, gradients, float(residual @ residual), float(weight @ residual**2), len(found)
 
 
 def _joint_step(
@@ -466,12 +469,12 @@ def _joint_step(
     fixed: set[int],
     config: RelaxationConfig,
     robust_scale: float,
-) -> tuple[dict[int, Matrix], float, int]:
+) -> tuple[dict[int, Matrix], float, float]:
     """One Gauss-Newton step of all scans at once over the current closest-point pairs (LUM's round).
 
     Each scan is queried once, by the thinned points of all its graph neighbours at once; the
     joint system is solved by :class:`slam6d.posegraph.BlockSystem`. Returns the new poses of the
-    free scans, the sum of squared residuals before the step and the number of point pairs. A
+    free scans and the sums of squared and of robustly weighted squared residuals before the step. A
     little Levenberg damping keeps directions no pair constrains (a scan seeing one flat wall)
     from running away.
     """
@@ -481,14 +484,14 @@ def _joint_step(
     ei: list[int] = []
     ej: list[int] = []
     off: list[FloatArray] = []
-    total, pairs = 0.0, 0
+    total, robust = 0.0, 0.0
     # an even share of the round's points per edge: every overlapping pair, the long-range ones
     # included, takes part (giving weakly overlapping pairs more points made the map no more consistent)
     per_edge = int(np.clip(config.round_points // max(len(graph_pairs), 1), 50, config.edge_points))
     for i, others in _by_model(graph_pairs).items():
-        js, blocks, gradients, sq, n = _model_system(models, current, i, others, per_edge, robust_scale)
+        js, blocks, gradients, sq, weighted_sq, _ = _model_system(models, current, i, others, per_edge, robust_scale)
         total += sq
-        pairs += n
+        robust += weighted_sq
         for j, h, g in zip(js, blocks, gradients, strict=True):
             diag[i] += h[:6, :6]
             diag[j] += h[6:, 6:]
@@ -508,7 +511,7 @@ def _joint_step(
     for k in range(count):
         if k not in fixed and k not in unused:
             moved[k] = current[k] @ make_pose(so3_exp(step[k, 3:]), step[k, :3])
-    return moved, total, pairs
+    return moved, total, robust
 
 
 def lum_relaxation(
@@ -535,7 +538,7 @@ def lum_relaxation(
     chi2_before: float | None = None
     chi2_after: float | None = None
     rounds = 0
-    previous: float | None = None  # χ² of the last round at the final robust scale
+    previous: float | None = None  # robust cost of the last round at the final robust scale
     for rounds in range(1, config.max_rounds + 1):
         _check_cancel(cancel)
         # graduated robustness: a tight kernel from the start would ignore exactly the centimetre
@@ -543,7 +546,7 @@ def lum_relaxation(
         scale = config.robust_scale
         if scale > 0:
             scale = max(scale, 0.5**rounds * models.config.max_distance)
-        moved_poses, chi2, _ = _joint_step(models, current, graph_pairs, held, config, scale)
+        moved_poses, chi2, cost = _joint_step(models, current, graph_pairs, held, config, scale)
         if chi2_before is None:
             chi2_before = chi2
         chi2_after = chi2
@@ -561,9 +564,9 @@ def lum_relaxation(
         if progress is not None:
             progress(rounds, chi2, moved)
         # re-pairing keeps every scan jittering by a fraction of a millimetre, so a round that no
-        # longer lowers the pairs' χ² ends the relaxation as well
-        settled = previous is not None and previous - chi2 <= config.chi2_tolerance * previous
-        previous = chi2 if scale <= config.robust_scale else None
+        # longer lowers the robust cost (at the final scale: comparable between rounds) ends it too
+        settled = previous is not None and abs(previous - cost) <= config.chi2_tolerance * previous
+        previous = cost if scale <= config.robust_scale else None
         if (largest <= config.tolerance or settled) and scale <= config.robust_scale:
             break
     after = carry_forward(before, current, chosen)
