@@ -10,9 +10,9 @@ Two methods, both over the same neighbour graph (scans whose reduced clouds shar
   every neighbour pair at the current poses and solves one linear system for all poses at once
   (here with point-to-plane residuals, Cauchy-weighted with a scale that halves from the ICP max
   distance each round, and a sparse solve); the next round re-pairs from the new poses. No pair is
-  re-matched by ICP, so a round costs one closest-point query per data point of each edge; each
-  edge gets an even share of ``round_points`` data points, so that every overlapping pair, the
-  long-range ones that make a map globally consistent included, can take part. Each scan's
+  re-matched by ICP, so a round costs one closest-point query per data point of each edge; the
+  ``round_points`` data points are shared among all overlapping pairs (the long-range ones that
+  make a map globally consistent included) in proportion to their overlap. Each scan's
   plane-sample tree (built once) is queried once per round by the points of all its neighbours
   at once, the Jacobians are built for all pairs of a scan together, and the joint system goes to
   :class:`slam6d.posegraph.BlockSystem`: on BALM hall (89 scans, 3916 overlapping pairs) a round
@@ -83,7 +83,7 @@ class RelaxationConfig:
     lum_icp_iterations: int = 8
     max_neighbours: int = 0  # strongest neighbours kept per scan for LUM edges; 0 = every neighbour pair
     edge_points: int = 4000  # data points per edge (evenly thinned), at most
-    round_points: int = 2_000_000  # data points per LUM round over all edges: many edges get fewer points each
+    round_points: int = 1_000_000  # data points per LUM round over all edges, shared in proportion to overlap
     tolerance: float = 0.0005  # metres: stop LUM rounds when no scan moves more
     chi2_tolerance: float = 0.005  # or when a round at the final robust scale changes the robust cost less (fraction)
     damping: float = 1e-3  # Levenberg damping of the joint LUM step, relative to the diagonal
@@ -197,7 +197,7 @@ class UnionIndex(ModelIndex):
 
 
 def _placed_in(
-    models: ScanModels, poses: Sequence[Matrix], i: int, others: Sequence[int], count: int
+    models: ScanModels, poses: Sequence[Matrix], i: int, others: Sequence[int], count: int | Sequence[int]
 ) -> tuple[FloatArray, FloatArray, NDArray[np.int64], FloatArray]:
     """Thinned points of each scan in ``others`` placed in scan i's frame, stacked for one query.
 
@@ -207,7 +207,8 @@ def _placed_in(
     """
     inverse = invert(poses[i])
     relative = np.stack([inverse @ poses[j] for j in others])
-    own = [models.thinned(j, count) for j in others]
+    counts = [count] * len(others) if isinstance(count, int) else count
+    own = [models.thinned(j, c) for j, c in zip(others, counts, strict=True)]
     placed = np.concatenate([transform_points(r, d) for r, d in zip(relative, own, strict=True)])
     source = np.repeat(np.arange(len(others)), [len(d) for d in own])
     return placed, np.concatenate(own), source, relative
@@ -422,7 +423,7 @@ def _model_system(
     current: Sequence[Matrix],
     i: int,
     others: Sequence[int],
-    per_edge: int,
+    per_edge: Sequence[int],
     robust_scale: float,
 ) -> tuple[list[int], FloatArray, FloatArray, float, float, int]:
     """Normal-equation blocks of every pair (i, j), j in ``others``, from one query of scan i's plane sample.
@@ -485,10 +486,14 @@ def _joint_step(
     ej: list[int] = []
     off: list[FloatArray] = []
     total, robust = 0.0, 0.0
-    # an even share of the round's points per edge: every overlapping pair, the long-range ones
-    # included, takes part (giving weakly overlapping pairs more points made the map no more consistent)
-    per_edge = int(np.clip(config.round_points // max(len(graph_pairs), 1), 50, config.edge_points))
+    # points per edge in proportion to its overlap, so that the strongly overlapping (mostly
+    # consecutive) pairs, which carry the local accuracy, get the most. On BALM hall that beat an
+    # even share per edge (RPE 0.56 vs 0.68 cm at 1M points, the same self-consistency) and, even
+    # more, equal pair counts per edge (0.86 cm)
+    share = {(p.i, p.j): p.pairs / len(models.points[p.j]) for p in graph_pairs}
+    unit = config.round_points / max(sum(share.values()), 1e-9)
     for i, others in _by_model(graph_pairs).items():
+        per_edge = [int(np.clip(unit * share[(i, j)], 50, config.edge_points)) for j in others]
         js, blocks, gradients, sq, weighted_sq, _ = _model_system(models, current, i, others, per_edge, robust_scale)
         total += sq
         robust += weighted_sq
