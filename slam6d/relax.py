@@ -226,7 +226,7 @@ def neighbour_pairs(
     poses: Sequence[Matrix],
     min_pairs: int = 250,
     members: Iterable[int] | None = None,
-    sample: int = 400,
+    sample: int = 200,
 ) -> list[NeighbourPair]:
     """Scan pairs with more than ``min_pairs`` closest-point pairs at the current poses.
 
