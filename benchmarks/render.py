@@ -12,11 +12,15 @@ passes over the path (the least disturbed one) with the median pass alongside.
 from __future__ import annotations
 
 import argparse
+import os
 import statistics
 import sys
 import tempfile
 import time
 from pathlib import Path
+
+# what `slam6d` and the workbench do at start (see slam6d.cli.main); override by setting it
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import numba
 import numpy as np
@@ -130,6 +134,7 @@ def main() -> None:
     parser.add_argument("--balm", action="store_true", help="also render the real BALM hall map")
     parser.add_argument("--video", action="store_true", help="also measure end-to-end MP4 writing")
     args = parser.parse_args()
+    print(f"load average {os.getloadavg()[0]:.2f} (1 min) at the start")
     print(f"numba {numba.__version__}, {numba.get_num_threads()} threads, threading layer ", end="")
     hall2m, hall1m = synthetic_hall(2_000_000), synthetic_hall(1_000_000)
     Renderer(hall1m, 8, 8).render(Camera.from_fov(np.eye(4), 8, 8))
@@ -147,6 +152,9 @@ def main() -> None:
         bench(scene, "BALM hall (real, 89 scans)", 1280, 720, args.frames, args.passes, False, path)
     if args.video:
         bench_video(hall2m, 1280, 720, 150)
+    print(
+        f"load average {os.getloadavg()[0]:.2f} (1 min) at the end; OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY')}"
+    )
 
 
 if __name__ == "__main__":
