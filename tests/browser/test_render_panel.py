@@ -9,6 +9,7 @@ import imageio_ffmpeg
 import numpy as np
 import pytest
 
+from slam6d.geometry import quaternion_to_rotation
 from tests.browser.conftest import viewer_frame
 
 pytestmark = pytest.mark.browser
@@ -45,9 +46,14 @@ def test_add_two_keyframes_render_and_download(corridor_sessions, live_server, n
     frame.get_by_text("2 keyframe(s)").wait_for(timeout=10_000)
     saved = session.camera_path()
     assert len(saved) == 2
+    # the first keyframe is the initial view, which looks at the map's centre: the keyframe's camera z axis
+    # (the renderer's viewing direction) must point there, so the browser's camera convention is the renderer's
+    viewer = server.app.state.viewers.get("corridor")
+    forward = quaternion_to_rotation(np.array(saved[0]["orientation_wxyz"]))[:, 2]
+    to_centre = np.asarray(viewer.server.initial_camera.look_at) - saved[0]["position"]
+    assert forward @ to_centre / np.linalg.norm(to_centre) > 0.999
     assert not np.allclose(saved[0]["orientation_wxyz"], saved[1]["orientation_wxyz"], atol=1e-3)
     # the preview draws one frustum per keyframe
-    viewer = server.app.state.viewers.get("corridor")
     assert len(viewer.render_panel._frustums) == 2
     # "Go to" the first keyframe: this browser's camera returns to the first view
     input_of(frame, "Keyframe").click()
