@@ -431,7 +431,7 @@ class Session:
     # -------------------------------------------------------------- render keyframes
 
     def camera_path(self) -> list[dict[str, Any]]:
-        """Render keyframes, as last saved (list of dicts, e.g. position/look_at/fov/time)."""
+        """Render keyframes, as last saved: dicts as in a camera-path file (position, orientation_wxyz, fov_deg)."""
         for entry in reversed(self.journal()):
             if entry.kind == "camera_path":
                 return list(entry.parameters.get("keyframes", []))
