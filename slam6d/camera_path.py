@@ -30,8 +30,7 @@ from scipy.interpolate import CubicSpline
 from scipy.spatial.transform import Rotation, RotationSpline
 
 from slam6d.errors import FormatError, Slam6dError
-from slam6d.geometry import Matrix, make_pose, quaternion_to_rotation, rotation_to_quaternion
-from slam6d.render import look_at
+from slam6d.geometry import Matrix, look_at, make_pose, quaternion_to_rotation, rotation_to_quaternion
 
 PATH_FORMAT = "slam6d-camera-path"
 PATH_VERSION = 1

@@ -11,7 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 Matrix = NDArray[np.float64]
 
@@ -186,6 +186,30 @@ def rotation_to_axis_angle(rotation: Matrix) -> Matrix:
         return np.zeros(3)
     angle = 2.0 * np.arctan2(sin_half, q[0])
     return q[1:] / sin_half * angle
+
+
+def look_at(eye: ArrayLike, target: ArrayLike, up: ArrayLike = (0.0, 0.0, 1.0)) -> Matrix:
+    """world_from_camera pose at ``eye`` looking at ``target`` with ``up`` appearing up in the image.
+
+    Camera axes are OpenCV's (x right, y down, z forward), as the renderer and viser use.
+
+    When the viewing direction is (anti)parallel to ``up`` the roll is undefined; another axis is
+    borrowed so the result is still a proper rotation rather than NaN.
+    """
+    eye_v = np.asarray(eye, dtype=np.float64)
+    forward = np.asarray(target, dtype=np.float64) - eye_v
+    norm = np.linalg.norm(forward)
+    if norm < 1e-12:
+        raise ValueError("look_at: eye and target coincide")
+    forward /= norm
+    up_v = np.asarray(up, dtype=np.float64)
+    right = np.cross(forward, up_v)
+    if np.linalg.norm(right) < 1e-9 * max(np.linalg.norm(up_v), 1e-300):
+        helper = np.array([1.0, 0.0, 0.0]) if abs(forward[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+        right = np.cross(forward, helper)
+    right /= np.linalg.norm(right)
+    down = np.cross(forward, right)
+    return make_pose(np.stack([right, down, forward], axis=1), eye_v)
 
 
 # ---------------------------------------------------------------- frame conventions

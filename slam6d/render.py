@@ -36,7 +36,7 @@ from numba import njit, prange
 from numpy.typing import NDArray
 
 from slam6d.errors import Slam6dError
-from slam6d.geometry import Matrix, invert, make_pose
+from slam6d.geometry import Matrix, invert
 from slam6d.scan import ScanSequence
 
 if TYPE_CHECKING:
@@ -95,28 +95,6 @@ class Camera:
         with np.errstate(divide="ignore", invalid="ignore"):
             uv = np.stack([self.fx * pc[:, 0] / pc[:, 2] + self.cx, self.fy * pc[:, 1] / pc[:, 2] + self.cy], axis=1)
         return uv, pc[:, 2]
-
-
-def look_at(eye: Sequence[float], target: Sequence[float], up: Sequence[float] = (0.0, 0.0, 1.0)) -> Matrix:
-    """world_from_camera pose at ``eye`` looking at ``target`` with ``up`` appearing up in the image.
-
-    When the viewing direction is (anti)parallel to ``up`` the roll is undefined; another axis is
-    borrowed so the result is still a proper rotation rather than NaN.
-    """
-    eye_v = np.asarray(eye, dtype=np.float64)
-    forward = np.asarray(target, dtype=np.float64) - eye_v
-    norm = np.linalg.norm(forward)
-    if norm < 1e-12:
-        raise ValueError("look_at: eye and target coincide")
-    forward /= norm
-    up_v = np.asarray(up, dtype=np.float64)
-    right = np.cross(forward, up_v)
-    if np.linalg.norm(right) < 1e-9 * max(np.linalg.norm(up_v), 1e-300):
-        helper = np.array([1.0, 0.0, 0.0]) if abs(forward[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-        right = np.cross(forward, helper)
-    right /= np.linalg.norm(right)
-    down = np.cross(forward, right)
-    return make_pose(np.stack([right, down, forward], axis=1), eye_v)
 
 
 # ---------------------------------------------------------------- scene

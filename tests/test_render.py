@@ -11,14 +11,13 @@ import pytest
 from typer.testing import CliRunner
 
 from slam6d.errors import Slam6dError
-from slam6d.geometry import make_pose, rot_z
+from slam6d.geometry import look_at, make_pose, rot_z
 from slam6d.render import (
     Camera,
     RenderCancelledError,
     Renderer,
     RenderOptions,
     load_render_input,
-    look_at,
     point_colors,
     render_fly_through,
     render_frames,
