@@ -15,9 +15,9 @@ from pydantic import BaseModel, Field
 
 from app import traces
 from app.api import Author, _state
-from app.editing import EditError, editor_for
+from app.editing import editor_for
 from app.jobs import JobConflictError, Work
-from app.workbench import Workbench
+from app.workbench import EditError, Workbench
 from slam6d.errors import Slam6dError
 from slam6d.posegraph import RelaxationError
 

@@ -31,8 +31,9 @@ from typing import Any
 import numpy as np
 
 from app.jobs import Cancel, JobCancelledError, Progress, Work
-from app.registration import pipeline_config
-from slam6d.errors import RegistrationError, Slam6dError
+from app.registration import hypotheses_entry, pipeline_config
+from app.workbench import EditError
+from slam6d.errors import RegistrationError
 from slam6d.geometry import Matrix, invert, transform_points
 from slam6d.icp import ICPConfig, icp
 from slam6d.initial_guess import GuessResult, OctreeSearchConfig, config_for, octree_guess
@@ -48,14 +49,6 @@ RESIDUAL_JUMP_FACTOR = 1.5
 RESIDUAL_JUMP_METRES = 0.02
 RESIDUAL_JUMP_OVERLAP = 0.15
 RELAX_METHODS = ("lum", "simultaneous")
-
-
-class EditError(Slam6dError):
-    """An edit cannot be made; ``status`` is the HTTP status that fits (404 unknown item, 409 conflict)."""
-
-    def __init__(self, message: str, status: int = 409) -> None:
-        self.status = status
-        super().__init__(message)
 
 
 # ---------------------------------------------------------------- residual summary
@@ -154,26 +147,6 @@ def _with_loop(graph: dict[str, Any], edge: dict[str, Any]) -> dict[str, Any]:
         "removed": [e for e in graph.get("removed", []) if _pair(*e) != key],
         "rejected": [e for e in graph.get("rejected", []) if _pair(*e) != key],
     }
-
-
-def _hypothesis_dict(h: LoopHypothesis) -> dict[str, Any]:
-    return {
-        "i": int(h.i),
-        "j": int(h.j),
-        "distance": float(h.distance),
-        "path_length": float(h.path_length),
-        "overlap": float(h.overlap),
-        "fitness": float(h.fitness),
-        "rms": float(h.rms),
-        "verified": bool(h.accepted),
-        "reason": h.reason,
-        "transform": None if h.transform is None else np.asarray(h.transform).tolist(),
-    }
-
-
-def hypotheses_entry(hypotheses: Sequence[LoopHypothesis]) -> dict[str, Any]:
-    """Journal parameters of a ``loop_hypotheses`` entry (also written after a registration run)."""
-    return {"hypotheses": [_hypothesis_dict(h) for h in hypotheses]}
 
 
 # ---------------------------------------------------------------- the editor
@@ -640,14 +613,12 @@ def editor_for(workbench: Any) -> Editor:
 
 
 __all__ = [
-    "EditError",
     "Editor",
     "ResidualSummary",
     "displacements",
     "editor_for",
     "graph_edge_list",
     "graph_lum",
-    "hypotheses_entry",
     "residual_jump",
     "residual_summary",
 ]

@@ -8,22 +8,16 @@ scans so the 3D view keeps showing the committed revision until the run is store
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Sequence
 from typing import Any
 
+import numpy as np
+
 from app.jobs import Cancel, Progress, Work
-from slam6d.errors import Slam6dError
+from slam6d import pipeline
+from slam6d.loops import LoopHypothesis
 from slam6d.scan import Scan, ScanSequence
 from slam6d.trace import to_jsonable
-
-
-def _pipeline_module():  # type: ignore[no-untyped-def]
-    try:
-        from slam6d import pipeline
-    except ModuleNotFoundError as exc:
-        if exc.name == "slam6d.pipeline":
-            raise Slam6dError("the registration pipeline is not available in this installation") from None
-        raise
-    return pipeline
 
 
 def _build(cls: type, values: dict[str, Any], what: str) -> Any:
@@ -47,7 +41,6 @@ def pipeline_config(engine: dict[str, Any], overrides: dict[str, Any] | None = N
 
     ``display_*`` keys belong to the 3D view (e.g. ``display_voxel_size``) and are skipped here.
     """
-    pipeline = _pipeline_module()
     values: dict[str, Any] = {}
     for source in (engine, overrides or {}):
         for key, value in source.items():
@@ -89,7 +82,6 @@ def accepted_loops(report: Any) -> list[dict[str, Any]]:
 
 def registration_job(workbench: Any, session_id: str, author: str, parameters: dict[str, Any]) -> Work:
     """A job that runs the whole pipeline and commits its poses as a new revision."""
-    pipeline = _pipeline_module()
     state = workbench.state(session_id)
     config = pipeline_config(state.session.config.engine, parameters)
 
@@ -110,7 +102,6 @@ def registration_job(workbench: Any, session_id: str, author: str, parameters: d
 
 def store_run(workbench: Any, session_id: str, author: str, runner: Any, recorder: Any, parameters: dict) -> dict:
     """Commit a finished run with its trace file named in the journal, then its loops for review."""
-    from app.editing import hypotheses_entry
 
     session = workbench.state(session_id).session
     meta = {"author": author, "final_poses": to_jsonable(runner.poses)}
@@ -123,3 +114,23 @@ def store_run(workbench: Any, session_id: str, author: str, runner: Any, recorde
         session.append(author, "loop_hypotheses", hypotheses_entry(runner.report.loops))
         workbench.notify(session_id)
     return {"revision": revision, "trace": name}
+
+
+def _hypothesis_dict(h: LoopHypothesis) -> dict[str, Any]:
+    return {
+        "i": int(h.i),
+        "j": int(h.j),
+        "distance": float(h.distance),
+        "path_length": float(h.path_length),
+        "overlap": float(h.overlap),
+        "fitness": float(h.fitness),
+        "rms": float(h.rms),
+        "verified": bool(h.accepted),
+        "reason": h.reason,
+        "transform": None if h.transform is None else np.asarray(h.transform).tolist(),
+    }
+
+
+def hypotheses_entry(hypotheses: Sequence[LoopHypothesis]) -> dict[str, Any]:
+    """Journal parameters of a ``loop_hypotheses`` entry (also written after a registration run)."""
+    return {"hypotheses": [_hypothesis_dict(h) for h in hypotheses]}

@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from app.editing import EditError
+from app.workbench import EditError
 from slam6d.trace import read_trace, to_jsonable, write_trace
 
 TRACE_DIR = "traces"

@@ -29,6 +29,14 @@ _ID = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,99}$")
 _UPLOAD_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,199}$")
 
 
+class EditError(Slam6dError):
+    """An edit cannot be made; ``status`` is the HTTP status that fits (404 unknown item, 409 conflict)."""
+
+    def __init__(self, message: str, status: int = 409) -> None:
+        self.status = status
+        super().__init__(message)
+
+
 class UnknownSessionError(LookupError):
     pass
 
@@ -226,4 +234,4 @@ def _expand(filename: str, content: bytes, limit: int) -> list[tuple[str, bytes]
     return [(base, content)]
 
 
-__all__ = ["SessionError", "SessionState", "UnknownSessionError", "UploadError", "Workbench"]
+__all__ = ["EditError", "SessionError", "SessionState", "UnknownSessionError", "UploadError", "Workbench"]
