@@ -144,6 +144,25 @@ class ICPResult:
     method: str
     max_distance: float = field(default=0.0)
 
+    @classmethod
+    def from_iterations(
+        cls, iterations: list[ICPIteration], data_points: int, method: str, frame: FloatArray | None = None
+    ) -> ICPResult:
+        """The result a finished iteration trace amounts to; ``frame`` (e.g. world_from_model) is
+        applied to the last transform when the model was matched in a frame of its own."""
+        last = iterations[-1]
+        return cls(
+            transform=last.transform if frame is None else frame @ last.transform,
+            iterations=iterations,
+            converged=last.converged,
+            pairs=last.pairs,
+            rms=last.rms,
+            fitness=last.pairs / max(data_points, 1),
+            data_points=data_points,
+            method=method,
+            max_distance=last.max_distance,
+        )
+
 
 # ---------------------------------------------------------------- normals (numba)
 
@@ -778,18 +797,7 @@ def icp(
     """Register ``data`` to ``model``: returns model_from_data and the per-iteration trace."""
     data = _prepare_data(data, config)
     iterations = list(_iterate(_as_model(model, config), data, _as_transform(initial), config))
-    last = iterations[-1]
-    return ICPResult(
-        transform=last.transform,
-        iterations=iterations,
-        converged=last.converged,
-        pairs=last.pairs,
-        rms=last.rms,
-        fitness=last.pairs / max(len(data), 1),
-        data_points=len(data),
-        method=config.method,
-        max_distance=last.max_distance,
-    )
+    return ICPResult.from_iterations(iterations, len(data), config.method)
 
 
 def count_pairs(model: ModelIndex | FloatArray, data: FloatArray, transform: FloatArray, max_distance: float) -> int:

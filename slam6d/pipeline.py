@@ -424,18 +424,7 @@ class Pipeline:
                 yield IcpIterated(index, iteration, pose)
         except RegistrationError as exc:
             return exc
-        last = iterations[-1]
-        return ICPResult(
-            transform=world_from_model @ last.transform,
-            iterations=iterations,
-            converged=last.converged,
-            pairs=last.pairs,
-            rms=last.rms,
-            fitness=last.pairs / max(len(data), 1),
-            data_points=len(data),
-            method=self._icp_config.method,
-            max_distance=last.max_distance,
-        )
+        return ICPResult.from_iterations(iterations, len(data), self._icp_config.method, world_from_model)
 
     def _register(self, index: int) -> Iterator[Event]:
         began = time.perf_counter()
