@@ -300,6 +300,28 @@ def _check_cancel(cancel: Callable[[], bool] | None) -> None:
         raise Cancelled("relaxation cancelled")
 
 
+def _set_up(
+    models: ScanModels,
+    poses: Sequence[Matrix],
+    fixed: Iterable[int],
+    members: Iterable[int] | None,
+    config: RelaxationConfig,
+) -> tuple[list[Matrix], list[Matrix], list[int], set[int], list[NeighbourPair]]:
+    """What both relaxations start from: poses before and working copies, the scans taking part,
+    the fixed ones among them (the first member when none is), and the overlapping pairs."""
+    before = [np.array(p) for p in poses]
+    current = [np.array(p) for p in poses]
+    chosen = sorted(set(range(len(models))) if members is None else set(members))
+    fixed_set = {f for f in fixed if f in chosen} or {chosen[0]}
+    return before, current, chosen, fixed_set, neighbour_pairs(models, current, config.min_pairs, chosen)
+
+
+def _check_graph(models: ScanModels, pairs: Sequence[NeighbourPair], fixed: set[int], chosen: list[int]) -> None:
+    """Refuse a graph in which some member is not tied to a fixed scan (scans left out count as fixed)."""
+    outside = set(range(len(models))) - set(chosen)
+    check_connected(len(models), [(p.i, p.j) for p in pairs], fixed | outside)
+
+
 def simultaneous_matching(
     models: ScanModels,
     poses: Sequence[Matrix],
@@ -312,12 +334,8 @@ def simultaneous_matching(
 ) -> RelaxationResult:
     """The seed's simultaneous matching over the scans ``members`` (default all), see the module docstring."""
     began = time.perf_counter()
-    before = [np.array(p) for p in poses]
-    current = [np.array(p) for p in poses]
-    chosen = sorted(set(range(len(models))) if members is None else set(members))
-    fixed_set = {f for f in fixed if f in chosen} or {chosen[0]}
-    pairs = neighbour_pairs(models, current, config.min_pairs, chosen)
-    check_connected(len(models), [(p.i, p.j) for p in pairs], fixed_set | (set(range(len(models))) - set(chosen)))
+    before, current, chosen, fixed_set, pairs = _set_up(models, poses, fixed, members, config)
+    _check_graph(models, pairs, fixed_set, chosen)
     adjacent = _adjacency(pairs, len(models))
     residual_before = pair_residual(models, current, pairs)
     first = start if start is not None else min(chosen)
@@ -530,16 +548,11 @@ def lum_relaxation(
 ) -> RelaxationResult:
     """LUM: all scans solved at once from the closest-point pairs of all neighbour pairs (module docstring)."""
     began = time.perf_counter()
-    before = [np.array(p) for p in poses]
-    current = [np.array(p) for p in poses]
-    chosen = sorted(set(range(len(models))) if members is None else set(members))
-    fixed_set = {f for f in fixed if f in chosen} or {chosen[0]}
-    pairs = neighbour_pairs(models, current, config.min_pairs, chosen)
+    before, current, chosen, fixed_set, pairs = _set_up(models, poses, fixed, members, config)
     graph_pairs = _strongest(pairs, len(models), config.max_neighbours)
-    outside = set(range(len(models))) - set(chosen)
-    check_connected(len(models), [(p.i, p.j) for p in graph_pairs], fixed_set | outside)
+    _check_graph(models, graph_pairs, fixed_set, chosen)
     residual_before = pair_residual(models, current, pairs)
-    held = fixed_set | outside
+    held = fixed_set | (set(range(len(models))) - set(chosen))
     chi2_before: float | None = None
     chi2_after: float | None = None
     rounds = 0
