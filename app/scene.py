@@ -20,6 +20,7 @@ from slam6d.nn import build_index
 from slam6d.octree import reduce_points
 
 DEFAULT_BUDGET = 1_500_000
+COARSE_BUDGET = 200_000  # the first, whole-map pass: about 0.5 s per frame for a software renderer
 FLOAT16_SAFE_EXTENT = 32.0  # metres: float16 spacing stays under 1.6 cm up to here
 
 _RAMP = np.array(  # perceptually ordered blue -> cyan -> green -> yellow -> red
@@ -46,6 +47,15 @@ def budget_selection(
     """
     cap = max(1, budget // max(1, len(clouds)))
     return [display_indices(c, voxel_size, cap) for c in clouds]
+
+
+def coarse_selection(clouds: Sequence[NDArray[np.float64]], budget: int = COARSE_BUDGET) -> list[NDArray[np.int64]]:
+    """Per-scan indices for the quick first look at the whole map: an even thinning, no voxel pass.
+
+    The coarse map exists to be on screen before the full selection is ready, so it must not wait
+    for the voxel reduction of every point (the slow part of a first open); it is replaced soon after.
+    """
+    return budget_selection(clouds, budget, voxel_size=0.0)
 
 
 def cached_budget_selection(

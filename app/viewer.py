@@ -1,8 +1,8 @@
 """The 3D view of a session: one viser server per open session, shared by every browser on it.
 
 Everything shown lives in server-side state, so a second browser on the same session sees the
-same map, colours and revision. Scans are sent once (display-reduced to a point budget) in their
-own frame; moving a scan only changes its scene node's pose.
+same map, colours and revision. Scans are sent (display-reduced to a point budget, coarse first)
+in their own frame; moving a scan only changes its scene node's pose.
 """
 
 from __future__ import annotations
@@ -28,6 +28,8 @@ COLOUR_MODES = ("scan", "height", "residual")
 _PAIR_DATA = (255, 120, 0)
 _PAIR_MODEL = (60, 140, 255)
 _MAX_CORRESPONDENCES = 300
+_CLIENT_WAIT = 5.0  # s: how long the full pass waits for the browser that opened the session to connect
+_COARSE_SETTLE = 0.5  # s: time for a browser to take in the coarse pass before the full one follows
 
 
 class SessionViewer:
@@ -49,9 +51,11 @@ class SessionViewer:
         self.highlight: dict[int, tuple[int, int, int]] = {}
         self._height_range = (0.0, 1.0)
         self.shown_revision = -1
+        self.coarse_points = 0  # points of the coarse first pass (0: the budget was sent in one pass)
         self.pose_updates = 0
         self.stepper: Stepper | None = None
         self.client_names: dict[int, Any] = {}
+        self._client_seen = threading.Event()
         self._build_gui()
         self.render_panel = render_panel.RenderPanel(self)  # the "Fly-through" folder
         self.panels = build_panels(self)  # loops, graph edits, octree guess, replay (app/panels)
@@ -118,6 +122,7 @@ class SessionViewer:
     def _on_connect(self, client: viser.ClientHandle) -> None:
         # Each browser has its own name field, so the journal records who pressed a button.
         self.client_names[client.client_id] = client.gui.add_text("Your name", f"guest-{client.client_id}", order=-1)
+        self._client_seen.set()
 
     def author(self, event: Any) -> str:
         field = self.client_names.get(getattr(event, "client_id", -1))
@@ -142,7 +147,6 @@ class SessionViewer:
         try:
             sequence = self.state.sequence(lambda d, t: self._progress("Reading scans", d, t))
             self.budget.value = int(self.state.session.config.engine.get("display_budget", scene.DEFAULT_BUDGET))
-            self._rebuild_scans()
             poses = sequence.poses()
             lo = np.min([p[:3, 3] for p in poses], axis=0)
             hi = np.max([p[:3, 3] for p in poses], axis=0)
@@ -150,6 +154,7 @@ class SessionViewer:
             size = float(max(np.linalg.norm(hi - lo), 20.0))
             self.server.initial_camera.look_at = centre
             self.server.initial_camera.position = centre + np.array([-0.4, -0.6, 0.7]) * size
+            self._rebuild_scans()
             self.progress.visible = False
         except Exception as exc:
             self.error = str(exc)
@@ -167,29 +172,69 @@ class SessionViewer:
     def _rebuild_scans(self) -> None:
         """(Re)send every scan at the current budget: the only time point data goes over the wire.
 
-        The scans go out as one atomic batch, so a browser draws the map once, complete, rather
-        than redrawing a growing map after each scan: without a GPU every redraw of the whole map
-        costs as much as the final one.
+        Two passes when the budget is above :data:`scene.COARSE_BUDGET`: first every scan at a
+        coarse level, so the whole map is on screen after one cheap frame (without a GPU a frame
+        costs ~2 µs per point), then every scan at the full budget, replacing the coarse points.
+        Each pass is one atomic batch, so a browser draws the map once per pass, complete,
+        rather than redrawing a growing map after each scan.
         """
         sequence = self.state.sequence()
+        clouds = [s.points for s in sequence.scans]
+        names = [s.name for s in sequence.scans]
+        budget = int(self.budget.value)
         voxel = float(self.state.session.config.engine.get("display_voxel_size", 0.05))
-        with self.lock:
-            selection = scene.cached_budget_selection(
-                self.state.session.folder / CACHE_DIR / "display.npz",
-                [s.points for s in sequence.scans],
-                int(self.budget.value),
-                voxel,
+        self.coarse_points, coarse_sent = 0, 0.0
+        if budget > scene.COARSE_BUDGET and sum(len(c) for c in clouds) > scene.COARSE_BUDGET:
+            self._show_selection(sequence, scene.coarse_selection(clouds), names, replace=True)
+            coarse_sent = time.monotonic()
+            self.coarse_points = sum(len(p) for p in self.local)
+            self.status.content = (
+                f"**{self.state.session.name}** · {len(self.local)} scans · coarse view "
+                f"({self.coarse_points:,} points), loading full detail…"
             )
-            self.local = [s.points[idx].astype(np.float32) for s, idx in zip(sequence.scans, selection, strict=True)]
-            self.poses = [s.pose.copy() for s in sequence.scans]
-            self.residuals = None
-            self._send_scans([s.name for s in sequence.scans])
-            self.shown_revision = self.state.session.revision
+            self._draw_graph()
+        selection = scene.cached_budget_selection(
+            self.state.session.folder / CACHE_DIR / "display.npz", clouds, budget, voxel
+        )
+        if self.coarse_points:
+            self._let_browsers_draw_coarse(coarse_sent)
+        self._show_selection(sequence, selection, names, replace=not self.coarse_points)
         self._draw_graph()
         self._update_status()
 
-    def _send_scans(self, names: list[str]) -> None:
+    def _let_browsers_draw_coarse(self, sent: float) -> None:
+        """Hold the full pass until the browser has the coarse one in a batch of its own.
+
+        The viewer starts on the request for the session page, typically before that page's 3D
+        view connects; a browser connecting after both passes were sent would get only the full
+        one and draw nothing for seconds. Nobody connecting within :data:`_CLIENT_WAIT` means
+        nobody is waiting for a first look.
+        """
+        if not self._client_seen.wait(max(0.0, sent + _CLIENT_WAIT - time.monotonic())):
+            return
+        time.sleep(_COARSE_SETTLE)
+
+    def _show_selection(self, sequence: Any, selection: list[np.ndarray], names: list[str], replace: bool) -> None:
+        """Display ``selection`` of each scan; ``replace`` drops the old nodes (and their poses) first.
+
+        Without ``replace`` the scans keep the poses they are shown at, which may have moved
+        (ICP stepping) since the previous pass was sent.
+        """
+        with self.lock:
+            self.local = [s.points[idx].astype(np.float32) for s, idx in zip(sequence.scans, selection, strict=True)]
+            if replace or len(self.poses) != len(self.local):
+                self.poses = [s.pose.copy() for s in sequence.scans]
+            self.residuals = None
+            if self.colour.value == "height":
+                self._height_range = scene.height_range(self.local, self.poses)
+            self._send_scans(names, replace)
+            self.shown_revision = self.state.session.revision
+
+    def _send_scans(self, names: list[str], replace: bool = True) -> None:
         """All scans in one websocket message, so the browser's first frame with points shows them all.
+
+        A node added under an existing name takes the old one's place in the same batch, so a
+        second pass never leaves a frame with a scan missing.
 
         viser sends at most 128 messages (4 per scan) per websocket message and the browser
         redraws after each one; the window is widened to hold the whole map. (Hiding the scans
@@ -198,8 +243,9 @@ class SessionViewer:
         buffer = self.server._websock_server.get_message_buffer()  # no public setting for this
         buffer.max_window_size = max(buffer.max_window_size, 4 * len(self.local) + 1024)  # + a new client's GUI backlog
         with self.server.atomic():
-            for node in self.nodes:
-                node.remove()
+            if replace:
+                for node in self.nodes:
+                    node.remove()
             self.nodes = []
             for k, points in enumerate(self.local):
                 pose = self.poses[k]
@@ -361,6 +407,7 @@ class SessionViewer:
             "error": self.error,
             "scans": len(self.nodes),
             "points_shown": int(sum(len(p) for p in self.local)),
+            "points_coarse": self.coarse_points,
             "colour": self.colour.value,
             "revision_shown": self.shown_revision,
             "pose_updates": self.pose_updates,

@@ -21,6 +21,18 @@ def test_budget_selection_keeps_the_map_within_budget_and_uses_real_points():
     assert all(len(s) <= 64 for s in coarse)
 
 
+def test_coarse_selection_covers_every_scan_within_the_coarse_budget():
+    rng = np.random.default_rng(3)
+    clouds = [rng.uniform(-10, 10, (n, 3)) for n in (60_000, 30_000, 500)]
+    coarse = scene.coarse_selection(clouds, budget=30_000)
+    assert sum(len(s) for s in coarse) <= 30_000
+    assert [len(s) for s in coarse] == [10_000, 10_000, 500]  # every scan is in the first look, small ones whole
+    assert all(np.all(np.diff(s) > 0) and s[-1] < len(c) for s, c in zip(coarse, clouds, strict=True))
+    # spread over the whole scan, not its first points: the coarse map has the same extent
+    np.testing.assert_allclose(clouds[0][coarse[0]].min(axis=0), clouds[0].min(axis=0), atol=0.1)
+    np.testing.assert_allclose(clouds[0][coarse[0]].max(axis=0), clouds[0].max(axis=0), atol=0.1)
+
+
 def test_cached_budget_selection_reuses_only_for_the_same_scans(tmp_path, monkeypatch):
     rng = np.random.default_rng(2)
     clouds = [rng.uniform(-10, 10, (20_000, 3)) for _ in range(3)]
