@@ -95,7 +95,7 @@ def test_octree_candidates_are_listed(corridor_sessions, live_server, new_browse
     frame.get_by_role("button", name="Search candidates").click()
     frame.get_by_text("candidates", exact=False).filter(has_text="occupied").wait_for(timeout=25_000)
     winner = frame.get_by_role("cell", name="★")
-    winner.wait_for(timeout=5_000)  # the winner is marked in the ranked table
+    winner.wait_for(timeout=15_000)  # the winner is marked in the ranked table
     winner.scroll_into_view_if_needed()
     page.screenshot(path=str(artifacts_dir / "workbench_octree_candidates.png"))
     guess = next(p for p in server.app.state.viewers.get("corridor").panels if type(p).__name__ == "GuessPanel")
