@@ -44,6 +44,18 @@ def write_corridor_scans(folder: Path, scans: int = 4, points: int = 3000, seed:
         write_uos_scan(folder, k, UOS.points_to_native(local), UOS.pose_to_native(odometry))
 
 
+def corridor_session(
+    sessions_root: Path, scans: int, points: int, odometry_noise: float = 0.0, engine: dict | None = None
+) -> Path:
+    """A ``corridor`` session folder in ``sessions_root`` over freshly written corridor scans."""
+    from slam6d.session import Session
+
+    folder = sessions_root / "corridor"
+    write_corridor_scans(folder / "scans", scans=scans, points=points, odometry_noise=odometry_noise)
+    Session.create(folder, "Corridor", "scans", engine=engine)
+    return folder
+
+
 def write_loop_scans(folder: Path, scans: int = 8, points: int = 6000, seed: int = 1) -> list[np.ndarray]:
     """A small simulated loop (drifting odometry as the files' poses); returns the true poses.
 

@@ -12,15 +12,13 @@ from fastapi.testclient import TestClient
 
 from app.server import create_app
 from slam6d.io.ply import read_ply
-from slam6d.session import Session
-from tests.session_fixtures import true_poses, write_corridor_scans
+from tests.session_fixtures import corridor_session, true_poses, write_corridor_scans
 
 
 @pytest.fixture
 def sessions_dir(tmp_path):
     root = tmp_path / "sessions"
-    write_corridor_scans(root / "corridor" / "scans", scans=3, points=400)
-    Session.create(root / "corridor", "Corridor", "scans", engine={"voxel_size": 0.2})
+    corridor_session(root, scans=3, points=400, engine={"voxel_size": 0.2})
     return root
 
 

@@ -11,7 +11,7 @@ from app.server import create_app
 from app.traces import replay_frames
 from slam6d.geometry import invert, pose_difference
 from slam6d.session import Session
-from tests.session_fixtures import true_poses, write_corridor_scans, write_loop_scans
+from tests.session_fixtures import corridor_session, true_poses, write_loop_scans
 
 CORRIDOR = "/api/sessions/corridor"
 LOOP = "/api/sessions/loop"
@@ -28,8 +28,7 @@ def loop_scans(tmp_path_factory):
 @pytest.fixture
 def client(tmp_path, loop_scans):
     root = tmp_path / "sessions"
-    write_corridor_scans(root / "corridor" / "scans", scans=4, points=3000, odometry_noise=0.1)
-    Session.create(root / "corridor", "Corridor", "scans", engine={"voxel_size": 0.1})
+    corridor_session(root, scans=4, points=3000, odometry_noise=0.1, engine={"voxel_size": 0.1})
     Session.create(root / "loop", "Loop", loop_scans[0])
     with TestClient(create_app(root, viewers=False)) as c:
         yield c

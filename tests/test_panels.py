@@ -6,8 +6,7 @@ import numpy as np
 import pytest
 
 from app.server import create_app
-from slam6d.session import Session
-from tests.session_fixtures import write_corridor_scans
+from tests.session_fixtures import corridor_session
 
 
 class Click:
@@ -17,8 +16,7 @@ class Click:
 @pytest.fixture
 def viewer(tmp_path):
     root = tmp_path / "sessions"
-    write_corridor_scans(root / "corridor" / "scans", scans=3, points=1500, odometry_noise=0.1)
-    Session.create(root / "corridor", "Corridor", "scans")
+    corridor_session(root, scans=3, points=1500, odometry_noise=0.1)
     app = create_app(root)
     view = app.state.viewers.get("corridor")
     assert view.ready.wait(30) and view.error is None

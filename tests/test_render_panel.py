@@ -14,7 +14,7 @@ from typer.testing import CliRunner
 from app.server import create_app
 from slam6d.cli import app as cli_app
 from slam6d.session import Session
-from tests.session_fixtures import write_corridor_scans
+from tests.session_fixtures import corridor_session
 
 # Two views down the corridor (x along it, z up), as a browser would send them.
 VIEW_A = {"position": [0.0, 0.0, 1.5], "look_at": [10.0, 0.0, 1.0], "fov_deg": 60.0}
@@ -24,8 +24,7 @@ VIEW_B = {"position": [8.0, 0.5, 1.5], "look_at": [20.0, 0.0, 1.0], "fov_deg": 5
 @pytest.fixture
 def sessions_dir(tmp_path):
     root = tmp_path / "sessions"
-    write_corridor_scans(root / "corridor" / "scans", scans=3, points=600)
-    Session.create(root / "corridor", "Corridor", "scans", engine={"voxel_size": 0.2})
+    corridor_session(root, scans=3, points=600, engine={"voxel_size": 0.2})
     return root
 
 

@@ -23,7 +23,7 @@ from PIL import Image
 from app.server import create_app
 from slam6d.session import Session
 from tests.conftest import PROJECT_ROOT
-from tests.session_fixtures import write_corridor_scans
+from tests.session_fixtures import corridor_session
 
 CHROMIUM = Path("/usr/bin/chromium")
 CHROMIUM_ARGS = [
@@ -76,8 +76,7 @@ class LiveServer:
 def corridor_sessions(tmp_path) -> Path:
     """A small 6-scan session (fast to load) in a fresh sessions folder."""
     root = tmp_path / "sessions"
-    write_corridor_scans(root / "corridor" / "scans", scans=6, points=8000, odometry_noise=0.15)
-    Session.create(root / "corridor", "Corridor", "scans", engine={"voxel_size": 0.1})
+    corridor_session(root, scans=6, points=8000, odometry_noise=0.15, engine={"voxel_size": 0.1})
     return root
 
 
