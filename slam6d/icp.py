@@ -205,6 +205,19 @@ def _smallest_eigenvector(c00, c01, c02, c11, c12, c22):  # type: ignore[no-unty
     return z0 * s, z1 * s, z2 * s, small, middle, large
 
 
+@numba.njit(cache=True, inline="always")
+def _store_plane_normal(normals, valid, row, c00, c01, c02, c11, c12, c22, min_planarity):  # type: ignore[no-untyped-def]
+    """Normal of a covariance into ``normals[row]`` when the points form a plane. A neighbourhood
+    along a single scan line is a line, not a plane (middle eigenvalue ~0): its "normal" is arbitrary,
+    so it is left invalid - one rule for every normal estimator."""
+    x, y, z, _small, middle, large = _smallest_eigenvector(c00, c01, c02, c11, c12, c22)
+    if large > 0.0 and middle > min_planarity * large and (x != 0.0 or y != 0.0 or z != 0.0):
+        normals[row, 0] = x
+        normals[row, 1] = y
+        normals[row, 2] = z
+        valid[row] = True
+
+
 @numba.njit(cache=True, parallel=True)
 def _normals_kernel(points, neighbours, min_planarity):  # type: ignore[no-untyped-def]
     n = neighbours.shape[0]
@@ -246,13 +259,7 @@ def _normals_kernel(points, neighbours, min_planarity):  # type: ignore[no-untyp
                 c11 += dy * dy
                 c12 += dy * dz
                 c22 += dz * dz
-        x, y, z, _small, middle, large = _smallest_eigenvector(c00, c01, c02, c11, c12, c22)
-        # A neighbourhood along a single scan line is a line, not a plane: its "normal" is arbitrary.
-        if large > 0.0 and middle > min_planarity * large and (x != 0.0 or y != 0.0 or z != 0.0):
-            normals[i, 0] = x
-            normals[i, 1] = y
-            normals[i, 2] = z
-            valid[i] = True
+        _store_plane_normal(normals, valid, i, c00, c01, c02, c11, c12, c22, min_planarity)
     return normals, valid
 
 
@@ -310,12 +317,7 @@ def _cell_normals_kernel(moments, min_points, min_planarity):  # type: ignore[no
         c11 = moments[c, 7] / count - my * my
         c12 = moments[c, 8] / count - my * mz
         c22 = moments[c, 9] / count - mz * mz
-        x, y, z, _small, middle, large = _smallest_eigenvector(c00, c01, c02, c11, c12, c22)
-        if large > 0.0 and middle > min_planarity * large and (x != 0.0 or y != 0.0 or z != 0.0):
-            normals[c, 0] = x
-            normals[c, 1] = y
-            normals[c, 2] = z
-            valid[c] = True
+        _store_plane_normal(normals, valid, c, c00, c01, c02, c11, c12, c22, min_planarity)
     return normals, valid
 
 
