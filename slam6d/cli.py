@@ -59,9 +59,6 @@ def formats() -> None:
         typer.echo(f"{name:10s} {' '.join(fmt.suffixes):18s} {fmt.description}")
 
 
-# -- commands are added below, one per engine entry point --
-
-
 @app.command()
 def match(
     model: Annotated[Path, typer.Argument(help="Scan that stays put.")],
