@@ -35,6 +35,24 @@ class PairRegistration:
     seconds: dict[str, float] = field(default_factory=dict)
 
 
+Outcome = ICPResult | RegistrationError
+
+
+def is_poor(outcome: Outcome, min_fitness: float = MIN_FITNESS) -> bool:
+    """Whether an ICP outcome calls for the octree search: it failed, or paired too few points."""
+    return isinstance(outcome, RegistrationError) or outcome.fitness < min_fitness
+
+
+def better_fit(first: Outcome, second: Outcome) -> Outcome:
+    """The ICP outcome to keep of two tries at the same scan: a success over a failure, else the
+    one pairing more of the data (on equal fitness the first, i.e. the odometry start, stays)."""
+    if isinstance(first, RegistrationError):
+        return second
+    if isinstance(second, RegistrationError) or second.fitness <= first.fitness:
+        return first
+    return second
+
+
 def initial_transform(model: Scan, data: Scan) -> Matrix:
     """Data-to-model start from the scans' poses, identity when either lacks one."""
     if model.has_pose and data.has_pose:
@@ -66,14 +84,9 @@ def register_pair(
     search_first = guess == "octree" or (guess == "auto" and initial is None and not (model.has_pose and data.has_pose))
     guess_result = _search(model, data, start, search_config, seconds) if search_first else None
     outcome = _icp(model, data, guess_result.transform if guess_result else start, icp_config, seconds)
-    poor = isinstance(outcome, RegistrationError) or outcome.fitness < min_fitness
-    if guess == "auto" and guess_result is None and poor:
+    if guess == "auto" and guess_result is None and is_poor(outcome, min_fitness):
         guess_result = _search(model, data, start, search_config, seconds)
-        second = _icp(model, data, guess_result.transform, icp_config, seconds)
-        if isinstance(outcome, RegistrationError) or (
-            not isinstance(second, RegistrationError) and second.fitness > outcome.fitness
-        ):
-            outcome = second
+        outcome = better_fit(outcome, _icp(model, data, guess_result.transform, icp_config, seconds))
     if isinstance(outcome, RegistrationError):
         raise RegistrationError(f"{data.name} onto {model.name}: {outcome}") from outcome
     return PairRegistration(outcome.transform, start, outcome, guess_result, model.name, data.name, seconds)
@@ -88,9 +101,7 @@ def _search(
     return result
 
 
-def _icp(
-    model: Scan, data: Scan, start: Matrix, config: ICPConfig, seconds: dict[str, float]
-) -> ICPResult | RegistrationError:
+def _icp(model: Scan, data: Scan, start: Matrix, config: ICPConfig, seconds: dict[str, float]) -> Outcome:
     began = time.perf_counter()
     try:
         return icp(model.points, data.points, start, config)

@@ -47,6 +47,7 @@ from slam6d.loops import (
     verify,
 )
 from slam6d.octree import Occupancy, Octree, reduce_points
+from slam6d.pair import MIN_FITNESS, better_fit, is_poor
 from slam6d.relax import (
     Cancelled,
     RelaxationConfig,
@@ -111,7 +112,7 @@ class PipelineConfig:
     max_range: float | None = None
     metascan_scans: int = 1
     registration_epsilon: float = 5e-4
-    min_fitness: float = 0.3
+    min_fitness: float = MIN_FITNESS
     guess: OctreeSearchConfig | None = None
     loop: LoopConfig = field(default_factory=LoopConfig)
     relax: RelaxationConfig = field(default_factory=RelaxationConfig)
@@ -437,15 +438,11 @@ class Pipeline:
         model, world_from_model, members = self._model(index)
         yield ScanStarted(index, start.copy(), guess, members)
         outcome = yield from self._run_icp(index, model, world_from_model, start)
-        poor = isinstance(outcome, RegistrationError) or outcome.fitness < cfg.min_fitness
-        if poor and cfg.octree_guess == "auto" and guess is None:
+        if is_poor(outcome, cfg.min_fitness) and cfg.octree_guess == "auto" and guess is None:
             guess = self._guess(index, start)
             yield ScanStarted(index, guess.transform.copy(), guess, members)
             second = yield from self._run_icp(index, model, world_from_model, guess.transform)
-            if isinstance(outcome, RegistrationError) or (
-                not isinstance(second, RegistrationError) and second.fitness > outcome.fitness
-            ):
-                outcome = second
+            outcome = better_fit(outcome, second)
         if isinstance(outcome, RegistrationError):
             name = self.summaries[index].name
             raise RegistrationError(f"scan {index} ({name}) could not be registered: {outcome}") from outcome
