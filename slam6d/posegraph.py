@@ -28,7 +28,7 @@ from cvxopt import cholmod
 from numpy.typing import NDArray
 
 from slam6d.errors import Slam6dError
-from slam6d.geometry import Matrix, invert, make_pose
+from slam6d.geometry import Matrix, invert
 
 
 class RelaxationError(Slam6dError):
@@ -124,30 +124,54 @@ def _inverse_right_jacobian(phi: NDArray[np.float64]) -> NDArray[np.float64]:
 
 
 @numba.njit(cache=True)
-def _inverse_spd6(m: NDArray[np.float64], tiny: float) -> tuple[NDArray[np.float64], bool]:
-    """Inverse of a symmetric positive definite 6x6 block by Cholesky; False when a pivot vanishes."""
-    low = np.zeros((6, 6))
+def _product(a: NDArray[np.float64], b: NDArray[np.float64], out: NDArray[np.float64], ta: bool, tb: bool) -> None:
+    """out = op(a) @ op(b) for 6x6 blocks (op transposes when asked); ``out`` must not alias a or b.
+
+    Fixed-size loops that the compiler unrolls beat a BLAS call per 6x6 product, and writing into
+    buffers keeps the per-pose sweeps free of allocations.
+    """
+    for r in range(6):
+        for c in range(6):
+            s = 0.0
+            for k in range(6):
+                s += (a[k, r] if ta else a[r, k]) * (b[c, k] if tb else b[k, c])
+            out[r, c] = s
+
+
+@numba.njit(cache=True)
+def _inverse_spd6(m: NDArray[np.float64], tiny: float, low: NDArray[np.float64], out: NDArray[np.float64]) -> bool:
+    """Inverse of a symmetric positive definite 6x6 block by Cholesky into ``out``; False when a pivot vanishes.
+
+    ``low`` is scratch space for the factor (overwritten with the inverse of the factor).
+    """
+    low[:] = 0.0
     for c in range(6):
         s = m[c, c]
         for k in range(c):
             s -= low[c, k] * low[c, k]
         if not s > tiny:
-            return low, False
+            return False
         low[c, c] = np.sqrt(s)
         for r in range(c + 1, 6):
             t = m[r, c]
             for k in range(c):
                 t -= low[r, k] * low[c, k]
             low[r, c] = t / low[c, c]
-    inv_low = np.zeros((6, 6))
-    for c in range(6):
-        inv_low[c, c] = 1.0 / low[c, c]
+    for c in range(6):  # invert the lower-triangular factor in place, column by column
+        low[c, c] = 1.0 / low[c, c]
         for r in range(c + 1, 6):
             t = 0.0
             for k in range(c, r):
-                t -= low[r, k] * inv_low[k, c]
-            inv_low[r, c] = t / low[r, r]
-    return inv_low.T @ inv_low, True
+                t -= low[r, k] * low[k, c]
+            low[r, c] = t / low[r, r]
+    for r in range(6):  # inv(L)^T inv(L); both factors are lower triangular, so k starts at max(r, c)
+        for c in range(r + 1):
+            t = 0.0
+            for k in range(r, 6):
+                t += low[k, r] * low[k, c]
+            out[r, c] = t
+            out[c, r] = t
+    return True
 
 
 @numba.njit(cache=True)
@@ -168,15 +192,20 @@ def _eliminate_paths(
     whose pivot vanished (-1 when none did).
     """
     count = len(interior)
-    inverse = np.zeros((count, 6, 6))
-    to_start = np.zeros((count, 6, 6))
-    current = np.zeros((count, 6))
+    inverse = np.empty((count, 6, 6))
+    to_start = np.empty((count, 6, 6))
+    current = np.empty((count, 6))
     fill = np.zeros((count, 6, 6))
     p_aa = np.zeros((6, 6))
     p_ak = np.zeros((6, 6))
     r_a = np.zeros(6)
     m = np.zeros((6, 6))
     r = np.zeros(6)
+    a_inv = np.empty((6, 6))
+    c_inv = np.empty((6, 6))
+    work = np.empty((6, 6))
+    scratch = np.empty((6, 6))
+    r_next = np.empty(6)
     a = -1
     for s in range(count):
         k = interior[s]
@@ -187,29 +216,40 @@ def _eliminate_paths(
             m[:] = diag[k]
             r[:] = rhs[k]
             p_ak[:] = to_next[a]
-        inv, ok = _inverse_spd6(m, tiny)
-        if not ok:
+        if not _inverse_spd6(m, tiny, scratch, inverse[s]):
             return inverse, to_start, current, fill, s
-        inverse[s] = inv
         to_start[s] = p_ak
         current[s] = r
         c = to_next[k]
-        a_inv = p_ak @ inv
-        c_inv = c.T @ inv
-        p_aa -= a_inv @ p_ak.T
-        r_a -= a_inv @ r
-        p_an = -(a_inv @ c)
         n = k + 1
+        _product(p_ak, inverse[s], a_inv, False, False)
+        _product(c, inverse[s], c_inv, True, False)
+        _product(a_inv, p_ak, work, False, True)
+        for i in range(6):
+            ta = r_a[i]
+            tn = rhs[n, i]
+            for j in range(6):
+                p_aa[i, j] -= work[i, j]
+                ta -= a_inv[i, j] * r[j]
+                tn -= c_inv[i, j] * r[j]
+            r_a[i] = ta
+            r_next[i] = tn
+        _product(a_inv, c, p_ak, False, False)  # minus the coupling of a to n once node k is gone
+        _product(c_inv, c, work, False, False)
         if s + 1 < count and interior[s + 1] == n:
-            m[:] = diag[n] - c_inv @ c
-            r[:] = rhs[n] - c_inv @ r
-            p_ak[:] = p_an
+            for i in range(6):
+                for j in range(6):
+                    m[i, j] = diag[n, i, j] - work[i, j]
+                    p_ak[i, j] = -p_ak[i, j]
+            r[:] = r_next
         else:
-            diag[n] -= c_inv @ c
-            rhs[n] -= c_inv @ r
-            diag[a] += p_aa
-            rhs[a] += r_a
-            fill[s] = p_an
+            for i in range(6):
+                for j in range(6):
+                    diag[n, i, j] -= work[i, j]
+                    diag[a, i, j] += p_aa[i, j]
+                    fill[s, i, j] = -p_ak[i, j]
+                rhs[a, i] += r_a[i]
+            rhs[n] = r_next
     return inverse, to_start, current, fill, -1
 
 
@@ -224,9 +264,20 @@ def _back_substitute(
     step: NDArray[np.float64],
 ) -> None:
     """Steps of the interior nodes, last to first along each path, once the key nodes are solved."""
+    v = np.empty(6)
     for s in range(len(interior) - 1, -1, -1):
         k = interior[s]
-        step[k] = inverse[s] @ (current[s] - to_start[s].T @ step[starts[s]] - to_next[k] @ step[k + 1])
+        start, after = step[starts[s]], step[k + 1]
+        for i in range(6):
+            t = current[s, i]
+            for j in range(6):
+                t -= to_start[s, j, i] * start[j] + to_next[k, i, j] * after[j]
+            v[i] = t
+        for i in range(6):
+            t = 0.0
+            for j in range(6):
+                t += inverse[s, i, j] * v[j]
+            step[k, i] = t
 
 
 class BlockSystem:
@@ -271,6 +322,7 @@ class BlockSystem:
         reduced = -np.ones(count, dtype=np.int64)
         reduced[self.key] = np.arange(len(self.key))
         self.sequential = gap == 1
+        self._chain_edges = self.sequential & free[ei] & free[ej]
         self.key_edges = np.flatnonzero(key[ei] & key[ej])
         fa, fb = self.starts[self.path_last], self.interior[self.path_last] + 1
         self.fill_keep = key[fa] & key[fb]
@@ -307,12 +359,7 @@ class BlockSystem:
         """
         diag, rhs = diag.copy(), rhs.copy()
         tiny = 1e-12 * max(float(np.abs(np.diagonal(diag, axis1=1, axis2=2)).max()), 1e-300)
-        to_next = np.zeros((self.count, 6, 6))
-        seq = self.sequential & self.free[self.ei] & self.free[self.ej]
-        forward = seq & (self.ej > self.ei)
-        np.add.at(to_next, self.ei[forward], off[forward])
-        backward = seq & (self.ej < self.ei)
-        np.add.at(to_next, self.ej[backward], np.transpose(off[backward], (0, 2, 1)))
+        to_next = _chain_couplings(self.ei, self.ej, off, self._chain_edges, self.count)
         inverse, to_start, current, fill, failed = _eliminate_paths(self.interior, diag, rhs, to_next, tiny)
         if failed >= 0:
             raise RelaxationError(
@@ -377,8 +424,8 @@ def _pack_edges(edges: Sequence[PoseEdge], count: int) -> _Edges:
     if bad.any():
         k = int(np.argmax(bad))
         raise RelaxationError(f"edge {k} ({i[k]}->{j[k]}) refers to a missing scan or to itself ({count} poses)")
-    meas = np.stack([np.asarray(e.measurement, dtype=np.float64) for e in edges])
-    info = np.stack([np.asarray(e.information, dtype=np.float64) for e in edges])
+    meas = np.array([e.measurement for e in edges], dtype=np.float64)
+    info = np.array([e.information for e in edges], dtype=np.float64)
     if not (np.isfinite(meas).all() and np.isfinite(info).all()):
         raise RelaxationError("an edge has a non-finite measurement or information matrix")
     info = 0.5 * (info + np.transpose(info, (0, 2, 1)))
@@ -439,7 +486,7 @@ def optimize_pose_graph(
     packed = _pack_edges(edges, count)
     check_connected(count, zip(packed.i.tolist(), packed.j.tolist(), strict=True), fixed_set)
 
-    stack = np.stack([np.asarray(p, dtype=np.float64) for p in poses])
+    stack = np.array(poses, dtype=np.float64)
     rot, trans = stack[:, :3, :3].copy(), stack[:, :3, 3].copy()
     system = BlockSystem(count, fixed_set, packed.i, packed.j)
     free = system.free
@@ -475,7 +522,8 @@ def optimize_pose_graph(
             progress(iteration, chi2)
         limit = tolerance * max(chi2, 1e-300)
         converged = improvement <= limit or mismatch <= limit or float(np.abs(step).max()) < 1e-10
-    result_poses = [make_pose(rot[k], trans[k]) for k in range(count)]
+    stack[:, :3, :3], stack[:, :3, 3], stack[:, 3] = rot, trans, (0.0, 0.0, 0.0, 1.0)
+    result_poses = list(stack)
     return PoseGraphResult(
         poses=result_poses,
         residual_before=before,
@@ -491,24 +539,96 @@ def _normal_blocks(
     e: _Edges, rij: NDArray, tij: NDArray, er: NDArray, err: NDArray, count: int
 ) -> tuple[NDArray, NDArray, NDArray]:
     """Per-node diagonal blocks, per-edge off-diagonal blocks H_ij and per-node gradient, all edges at once."""
-    m = len(e.i)
-    ai = np.zeros((m, 6, 6))
-    aj = np.zeros((m, 6, 6))
-    jr_inv = _inverse_right_jacobian(er)
-    ai[:, :3, :3] = -np.eye(3)
-    ai[:, :3, 3:] = _skew(tij)
-    ai[:, 3:, 3:] = -jr_inv @ np.transpose(rij, (0, 2, 1))
-    aj[:, :3, :3] = rij
-    aj[:, 3:, 3:] = jr_inv
-    wi = np.einsum("mki,mkl->mil", ai, e.info)  # A_i^T Ω
-    wj = np.einsum("mki,mkl->mil", aj, e.info)
+    return _accumulate_normal_blocks(e.i, e.j, rij, tij, _inverse_right_jacobian(er), err, e.info, count)
+
+
+@numba.njit(cache=True)
+def _accumulate_normal_blocks(
+    ei: NDArray[np.int64],
+    ej: NDArray[np.int64],
+    rij: NDArray[np.float64],
+    tij: NDArray[np.float64],
+    jr_inv: NDArray[np.float64],
+    err: NDArray[np.float64],
+    info: NDArray[np.float64],
+    count: int,
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """A_i^T Ω A_i, A_j^T Ω A_j, A_i^T Ω A_j and A^T Ω e of every edge, summed per pose in one pass.
+
+    The Jacobians are A_i = [[-I, [t_ij]x], [0, -J_r^-1 R_ij^T]] and A_j = [[R_ij, 0], [0, J_r^-1]];
+    one compiled loop avoids the (edges, 6, 6) temporaries and the slow unbuffered scatter that
+    the array version needed, which together cost as much as the sparse factorisation.
+    """
     diag = np.zeros((count, 6, 6))
-    np.add.at(diag, e.i, wi @ ai)
-    np.add.at(diag, e.j, wj @ aj)
+    off = np.zeros((len(ei), 6, 6))
     gradient = np.zeros((count, 6))
-    np.add.at(gradient, e.i, np.einsum("mij,mj->mi", wi, err))
-    np.add.at(gradient, e.j, np.einsum("mij,mj->mi", wj, err))
-    return diag, wi @ aj, gradient
+    ai = np.zeros((6, 6))
+    aj = np.zeros((6, 6))
+    wi = np.zeros((6, 6))
+    wj = np.zeros((6, 6))
+    for m in range(len(ei)):
+        t, r, jr = tij[m], rij[m], jr_inv[m]
+        ai[:] = 0.0
+        aj[:] = 0.0
+        for a in range(3):
+            ai[a, a] = -1.0
+            for b in range(3):
+                aj[a, b] = r[a, b]
+                aj[3 + a, 3 + b] = jr[a, b]
+                s = 0.0
+                for k in range(3):
+                    s -= jr[a, k] * r[b, k]
+                ai[3 + a, 3 + b] = s
+        ai[0, 4], ai[0, 5] = -t[2], t[1]
+        ai[1, 3], ai[1, 5] = t[2], -t[0]
+        ai[2, 3], ai[2, 4] = -t[1], t[0]
+        omega = info[m]
+        for a in range(6):
+            for b in range(6):
+                si = 0.0
+                sj = 0.0
+                for k in range(6):
+                    si += ai[k, a] * omega[k, b]
+                    sj += aj[k, a] * omega[k, b]
+                wi[a, b] = si
+                wj[a, b] = sj
+        i, j = ei[m], ej[m]
+        for a in range(6):
+            gi = 0.0
+            gj = 0.0
+            for k in range(6):
+                gi += wi[a, k] * err[m, k]
+                gj += wj[a, k] * err[m, k]
+            gradient[i, a] += gi
+            gradient[j, a] += gj
+            for b in range(6):
+                sii = 0.0
+                sjj = 0.0
+                sij = 0.0
+                for k in range(6):
+                    sii += wi[a, k] * ai[k, b]
+                    sjj += wj[a, k] * aj[k, b]
+                    sij += wi[a, k] * aj[k, b]
+                diag[i, a, b] += sii
+                diag[j, a, b] += sjj
+                off[m, a, b] = sij
+    return diag, off, gradient
+
+
+@numba.njit(cache=True)
+def _chain_couplings(
+    ei: NDArray[np.int64], ej: NDArray[np.int64], off: NDArray[np.float64], use: NDArray[np.bool_], count: int
+) -> NDArray[np.float64]:
+    """H_{k,k+1} per pose from the used edges between consecutive poses (either direction, parallel ones summed)."""
+    to_next = np.zeros((count, 6, 6))
+    for m in range(len(ei)):
+        if not use[m]:
+            continue
+        if ej[m] > ei[m]:
+            to_next[ei[m]] += off[m]
+        else:
+            to_next[ej[m]] += off[m].T
+    return to_next
 
 
 def _moved(rot: NDArray, trans: NDArray, step: NDArray, free: NDArray[np.bool_]) -> tuple[NDArray, NDArray]:
