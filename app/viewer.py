@@ -16,6 +16,7 @@ import numpy as np
 import viser
 
 from app import render_panel, scene
+from app.editing import editor_for
 from app.panels import build_panels
 from app.registration import pipeline_config, working_copy
 from app.traces import TraceRecorder
@@ -37,6 +38,7 @@ class SessionViewer:
         self.workbench = workbench
         self.session_id = session_id
         self.state = workbench.state(session_id)
+        self.editor = editor_for(workbench)
         self.server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False, label=self.state.session.name)
         self.port = self.server.get_port()
         self.server.scene.set_up_direction("+z")
@@ -44,11 +46,19 @@ class SessionViewer:
         self.lock = threading.RLock()
         self.ready = threading.Event()
         self.error: str | None = None
+        self.stopped = False
         self.local: list[np.ndarray] = []  # display points per scan, scanner frame, float32
         self.poses: list[Matrix] = []
         self.nodes: list[Any] = []
         self.residuals: list[np.ndarray] | None = None
         self.highlight: dict[int, tuple[int, int, int]] = {}
+        self.pose_version = 0  # counts changes of the shown poses: what edge residuals were computed for
+        self.edge_rms: dict[tuple[int, int], float] = {}
+        self.edge_rms_version = -1
+        self.edge_nodes: dict[str, Any] = {}  # "/graph/trajectory", "/graph/loops"
+        self.edge_scale = float(pipeline_config(self.state.session.config.engine).icp.max_distance)
+        self._edges_wanted = threading.Event()
+        self._edges_worker: threading.Thread | None = None
         self._height_range = (0.0, 1.0)
         self.shown_revision = -1
         self.coarse_points = 0  # points of the coarse first pass (0: the budget was sent in one pass)
@@ -76,6 +86,7 @@ class SessionViewer:
             self.apply_budget = gui.add_button("Apply budget")
             self.show_trajectory = gui.add_checkbox("Trajectory", True)
             self.show_edges = gui.add_checkbox("Graph edges", True)
+            self.edge_legend = gui.add_markdown("")
         with gui.add_folder("Registration"):
             self.run_button = gui.add_button("Run registration")
             self.cancel_button = gui.add_button("Cancel job", disabled=True)
@@ -224,6 +235,7 @@ class SessionViewer:
             self.local = [s.points[idx].astype(np.float32) for s, idx in zip(sequence.scans, selection, strict=True)]
             if replace or len(self.poses) != len(self.local):
                 self.poses = [s.pose.copy() for s in sequence.scans]
+                self.pose_version += 1
             self.residuals = None
             if self.colour.value == "height":
                 self._height_range = scene.height_range(self.local, self.poses)
@@ -310,36 +322,93 @@ class SessionViewer:
             self.pose_updates += 1
             if moved:
                 self.residuals = None
+                self.pose_version += 1
 
     def _draw_graph(self) -> None:
+        """Trajectory (sequential edges) and loop edges, each coloured by its residual RMS.
+
+        The residuals are the editor's per-edge summary (the numbers the "residuals jumped" guardrail
+        compares), computed in the background for the poses shown; until they are in, edges are grey.
+        """
         with self.lock:
             if not self.poses:
                 return
             origin = self.poses[0][:3, 3]
-            graph = self.state.session.graph()
-            from app.exports import graph_edges
+            edges = [(e["i"], e["j"], e["kind"]) for e in self.editor.edges(self.session_id)]
+            edges = [e for e in edges if e[0] < len(self.poses) and e[1] < len(self.poses)]
+            known = self.edge_rms if self.edge_rms_version == self.pose_version else None
+            for name, sequential, thickness, toggle in (
+                ("/graph/trajectory", True, 3.0, self.show_trajectory),
+                ("/graph/loops", False, 4.0, self.show_edges),
+            ):
+                chosen = [(i, j) for i, j, kind in edges if (kind == "sequential") == sequential]
+                if known is None:
+                    colours: Any = (150, 150, 150)
+                else:
+                    colours = scene.edge_colours([known.get((i, j), np.nan) for i, j in chosen], self.edge_scale)
+                self.edge_nodes[name] = self.server.scene.add_line_segments(
+                    name,
+                    scene.segments(chosen, self.poses) if chosen else np.zeros((1, 2, 3), np.float32),
+                    colors=colours if chosen else (0, 0, 0),
+                    thickness=thickness,
+                    thickness_units="screen",
+                    position=origin,
+                    visible=bool(toggle.value) and bool(chosen),
+                )
+            if known is None:
+                self._edge_residuals_later()
+            self._edge_legend(known)
 
-            edges = graph_edges(len(self.poses), graph)
-            sequential = [(i, j) for i, j, kind in edges if kind == "sequential"]
-            loops = [(i, j) for i, j, kind in edges if kind != "sequential"]
-            self.server.scene.add_line_segments(
-                "/graph/trajectory",
-                scene.segments(sequential, self.poses),
-                colors=(250, 250, 250),
-                thickness=3.0,
-                thickness_units="screen",
-                position=origin,
-                visible=bool(self.show_trajectory.value),
-            )
-            self.server.scene.add_line_segments(
-                "/graph/loops",
-                scene.segments(loops, self.poses) if loops else np.zeros((1, 2, 3), np.float32),
-                colors=(255, 60, 200),
-                thickness=2.0,
-                thickness_units="screen",
-                position=origin,
-                visible=bool(self.show_edges.value) and bool(loops),
-            )
+    def _edge_residuals_later(self) -> None:
+        """Compute the edges' residuals for the shown poses in the background, then recolour them.
+
+        The first call builds the editor's reduced scans (seconds for a large session, paid once and
+        reused by every edit), so it never holds up the map. Requests while one runs coalesce.
+        """
+        self._edges_wanted.set()
+        if self._edges_worker is not None and self._edges_worker.is_alive():
+            return
+
+        def work() -> None:
+            self.ready.wait()  # after the full map is sent: the first look at a session comes first
+            while self._edges_wanted.is_set() and not self.stopped:
+                self._edges_wanted.clear()
+                with self.lock:
+                    version, poses = self.pose_version, [p.copy() for p in self.poses]
+                try:
+                    summary = self.editor.residuals(self.session_id, poses)
+                    with self.lock:
+                        if version != self.pose_version:
+                            continue  # moved meanwhile: the next request (or a redraw) computes them
+                        self.edge_rms = {(int(e["i"]), int(e["j"])): float(e["rms"]) for e in summary.edges}
+                        self.edge_rms_version = version
+                        self._draw_graph()
+                except Exception as exc:
+                    if not self.stopped:
+                        self.edge_legend.content = f"Edge residuals unavailable: {exc}"
+                    return
+
+        self._edges_worker = threading.Thread(target=work, name=f"edge-residuals-{self.session_id}", daemon=True)
+        self._edges_worker.start()
+
+    def _edge_legend(self, known: dict[tuple[int, int], float] | None) -> None:
+        low, high = (f"rgb{tuple(int(c) for c in rgb[0])}" for rgb in scene.edge_colours([0, 1], 1.0))
+        scale = (
+            f"Edges by residual RMS: <span style='color:{low}'>■</span> 0 m → "
+            f"<span style='color:{high}'>■</span> ≥ {self.edge_scale:.2f} m or no overlap"
+        )
+        if known is None:
+            self.edge_legend.content = f"{scale} · computing…"
+            return
+        finite = {edge: rms for edge, rms in known.items() if np.isfinite(rms)}
+        worst = max(known, key=lambda e: np.inf if not np.isfinite(known[e]) else known[e], default=None)
+        detail = ""
+        if worst is not None:
+            value = known[worst]
+            detail = f" · worst {worst[0]}–{worst[1]}: " + (f"{value:.3f} m" if np.isfinite(value) else "no overlap")
+        if finite:
+            detail += f" · median {np.median(list(finite.values())):.3f} m"
+        self.edge_legend.content = scale + detail
 
     def _update_status(self) -> None:
         session = self.state.session
@@ -416,6 +485,7 @@ class SessionViewer:
         }
 
     def stop(self) -> None:
+        self.stopped = True
         if self.stepper is not None:
             self.stepper.pause()
         self.server.stop()

@@ -87,3 +87,105 @@ def test_segments_are_relative_to_the_first_scan():
     seg = scene.segments([(0, 1), (1, 2)], poses)
     assert seg.dtype == np.float32 and seg.shape == (2, 2, 3)
     np.testing.assert_allclose(seg[1], [[1, 0, 0], [2, 0, 0]])
+
+
+def _box_room(rng: np.random.Generator, count: int) -> np.ndarray:
+    """Points on the floor and three walls of a 10 m room: enough structure to pin a pose in 3D."""
+    face = rng.integers(0, 4, count)  # 0 floor, 1 wall x=0, 2 wall x=10, 3 wall y=10
+    u, w, v = rng.uniform(0, 10, count), rng.uniform(0, 10, count), rng.uniform(0, 3, count)
+    x = np.select([face == 1, face == 2], [0.0, 10.0], u)
+    y = np.select([face == 0, face == 3], [w, 10.0], u)
+    z = np.where(face == 0, 0.0, v)
+    return np.column_stack([x, y, z])
+
+
+def test_an_edge_whose_scans_disagree_gets_a_clearly_worse_colour():
+    from app.editing import residual_summary
+    from slam6d.icp import ICPConfig
+    from slam6d.relax import ScanModels
+
+    rng = np.random.default_rng(4)
+    room = _box_room(rng, 60_000)
+    truth = [pose_from_xyzrpy(k * 0.8, 0.1 * k, 0, 0, 0, 0.05 * k) for k in range(3)]
+    local = [(room[rng.choice(len(room), 20_000, replace=False)] - p[:3, 3]) @ p[:3, :3] for p in truth]
+    models = ScanModels(local, ICPConfig())
+    shown = [truth[0], truth[1], truth[2] @ pose_from_xyzrpy(0.15, -0.1, 0.05, 0.02, 0, 0.03)]  # scan 2 off
+    summary = residual_summary(models, shown, [(0, 1), (1, 2)])
+    good, bad = (e["rms"] for e in summary.edges)
+    assert good < 0.05 and bad > 0.1
+    scale = ICPConfig().max_distance
+    colours = scene.edge_colours([good, bad, np.nan], scale)
+    assert colours.shape == (3, 2, 3) and colours.dtype == np.uint8
+    assert np.array_equal(colours[:, 0], colours[:, 1])  # one colour per edge, both ends
+    position = np.linspace(0, scale, 101)  # where on the edge scale each colour sits
+    ramp = scene.edge_colours(position, scale)[:, 0].astype(int)
+    where = [position[np.abs(ramp - c.astype(int)).sum(axis=1).argmin()] for c in colours[:, 0]]
+    assert where[0] < 0.25 * scale and where[1] > where[0] + 0.3 * scale
+    assert where[2] == scale  # no overlap at all is the top of the scale, not "no data"
+
+
+def test_pick_scan_takes_the_scan_under_the_cursor_and_in_front():
+    rng = np.random.default_rng(5)
+    blob = rng.normal(0, 0.3, (2000, 3))  # each scan a small cluster around its own origin
+    poses = [pose_from_xyzrpy(x, y, 0, 0, 0, yaw) for x, y, yaw in ((0, 0, 0), (10, 0, 1.0), (20, 0, -0.5))]
+    camera = np.array([10.0, -30.0, 5.0])
+
+    def ray_to(target):  # type: ignore[no-untyped-def]
+        return camera, np.asarray(target, float) - camera
+
+    assert scene.pick_scan([blob] * 3, poses, *ray_to([10, 0, 0])) == 1
+    assert scene.pick_scan([blob] * 3, poses, *ray_to([20.2, 0.1, 0])) == 2
+    assert scene.pick_scan([blob] * 3, poses, *ray_to([0, 0, 0])) == 0
+    assert scene.pick_scan([blob] * 3, poses, *ray_to([5, 0, 8])) is None  # empty sky between scans
+    assert scene.pick_scan([blob] * 3, poses, camera, camera - np.array([10.0, 0, 0])) is None  # behind the camera
+    # two scans on the same line of sight: the nearer one hides the farther one
+    behind = [pose_from_xyzrpy(10, 0, 0, 0, 0, 0), pose_from_xyzrpy(10, 15, 0, 0, 0, 0)]
+    assert scene.pick_scan([blob, blob], behind, *ray_to([10, 0, 0])) == 0
+    assert scene.pick_scan([blob, blob], behind[::-1], *ray_to([10, 0, 0])) == 1
+    # far from the origin (UTM-like coordinates) the local-frame test is just as exact
+    offset = np.array([4.5e5, 5.4e6, 0.0])
+    far = [p.copy() for p in poses]
+    for p in far:
+        p[:3, 3] += offset
+    assert scene.pick_scan([blob] * 3, far, camera + offset, np.array([10.0, 0, 0]) - camera) == 1
+
+
+@pytest.fixture
+def corridor_view(tmp_path):  # type: ignore[no-untyped-def]
+    from app.server import create_app
+    from tests.session_fixtures import corridor_session
+
+    corridor_session(tmp_path / "sessions", scans=3, points=20_000)  # true poses: every edge agrees
+    app = create_app(tmp_path / "sessions")
+    view = app.state.viewers.get("corridor")
+    assert view.ready.wait(30) and view.error is None
+    yield view
+    app.state.viewers.stop_all()
+
+
+def _edge_colours_when_computed(view):  # type: ignore[no-untyped-def]
+    import time
+
+    deadline = time.monotonic() + 30
+    while view.edge_rms_version != view.pose_version:
+        assert time.monotonic() < deadline, "edge residuals never arrived"
+        time.sleep(0.05)
+    with view.lock:  # the residuals and the edges drawn with them are set together under it
+        return np.asarray(view.edge_nodes["/graph/trajectory"].colors)[:, 0]
+
+
+def test_the_view_recolours_an_edge_when_a_scan_moves_off(corridor_view):
+    view = corridor_view
+    before = _edge_colours_when_computed(view)
+    assert np.abs(before[0].astype(int) - before[1]).max() <= 10  # both edges agree about as well
+    assert "worst" in view.edge_legend.content
+    moved = [p.copy() for p in view.poses]
+    moved[2] = moved[2] @ pose_from_xyzrpy(0.3, 0.2, 0, 0, 0, 0.05)
+    view.set_poses(moved)
+    view._draw_graph()  # what a new revision does
+    after = _edge_colours_when_computed(view)
+    assert np.array_equal(after[0], before[0])  # the untouched edge keeps its colour
+    top = scene.edge_colours([view.edge_scale], view.edge_scale)[0, 0]
+    assert tuple(after[1]) == tuple(top)  # the moved one: top of the scale
+    assert view.edge_rms[(1, 2)] > 3 * view.edge_rms[(0, 1)]
+    assert "worst 1–2" in view.edge_legend.content
