@@ -10,9 +10,10 @@ Two methods, both over the same neighbour graph (scans whose reduced clouds shar
   every neighbour pair at the current poses and solves one linear system for all poses at once
   (here with point-to-plane residuals, Cauchy-weighted with a scale that halves from the ICP max
   distance each round, and a sparse solve); the next round re-pairs from the new poses. No pair is
-  re-matched by ICP, so a round costs one closest-point query per data point of each edge; the
-  ``round_points`` data points are shared among all overlapping pairs (the long-range ones that
-  make a map globally consistent included) in proportion to their overlap. Each scan's
+  re-matched by ICP, so a round costs one closest-point query per data point of each edge; a
+  round samples ``pair_points`` data points per overlapping pair on average (so the budget grows
+  with the graph, not with a fixed total), shared among all pairs (the long-range ones that make a
+  map globally consistent included) in proportion to their overlap. Each scan's
   plane-sample tree (built once) is queried once per round by the points of all its neighbours
   at once, the Jacobians are built for all pairs of a scan together, and the joint system goes to
   :class:`slam6d.posegraph.BlockSystem`: on BALM hall (89 scans, 3916 overlapping pairs) a round
@@ -83,7 +84,11 @@ class RelaxationConfig:
     lum_icp_iterations: int = 8
     max_neighbours: int = 0  # strongest neighbours kept per scan for LUM edges; 0 = every neighbour pair
     edge_points: int = 4000  # data points per edge (evenly thinned), at most
-    round_points: int = 1_000_000  # data points per LUM round over all edges, shared in proportion to overlap
+    min_edge_points: int = 50  # and at least
+    overlap_exponent: float = 1.0  # a pair's weight in LUM grows with its overlap to this power
+    pair_points: int = 250  # data points per LUM round and graph pair on average, shared in proportion to overlap
+    round_points: int = 0  # a cap on the data points per LUM round (0 = none)
+    first_scale: float = 0.25  # Cauchy scale of the first LUM round, relative to the ICP max distance
     tolerance: float = 0.0005  # metres: stop LUM rounds when no scan moves more
     chi2_tolerance: float = 0.005  # or when a round at the final robust scale changes the robust cost less (fraction)
     damping: float = 1e-3  # Levenberg damping of the joint LUM step, relative to the diagonal
@@ -443,15 +448,15 @@ def _model_system(
     others: Sequence[int],
     per_edge: Sequence[int],
     robust_scale: float,
-) -> tuple[list[int], FloatArray, FloatArray, float, float, int]:
+) -> tuple[list[int], FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
     """Normal-equation blocks of every pair (i, j), j in ``others``, from one query of scan i's plane sample.
 
     Data points ``p`` of scan j are placed in scan i's frame by inv(X_i) X_j and paired with the
     closest point ``m`` (normal ``n``) of scan i's plane sample. With both poses perturbed on the
     right, X <- X Exp([ρ, φ]), the residual r = n·(q - m), q = inv(X_i) X_j p, moves by
-    J_i = [-n, -(q × n)] and J_j = [R_ij^T n, p × R_ij^T n]. Returns the scans j that got pairs,
-    their 12x12 blocks J^T W J (order i then j) and J^T W r, the sums of r² and of w r², and the
-    pair count.
+    J_i = [-n, -(q × n)] and J_j = [R_ij^T n, p × R_ij^T n]. Returns the scans j that got pairs and,
+    per pair, its 12x12 block J^T W J (order i then j), J^T W r, the sums of r² and of w r², and
+    the pair count.
     With ``robust_scale`` c > 0 each pair is weighted by Cauchy's w = 1 / (1 + (r/c)²)
     (iteratively reweighted least squares): pairs of different surfaces that happen to lie within
     the max distance then barely pull.
@@ -463,7 +468,8 @@ def _model_system(
     normals, usable = model.plane_normals_for(idx[found])  # estimated once, where pairs first need them
     found, normals = found[usable], normals[usable]
     if len(found) == 0:
-        return [], np.zeros((0, 12, 12)), np.zeros((0, 12)), 0.0, 0.0, 0
+        empty = np.zeros(0)
+        return [], np.zeros((0, 12, 12)), np.zeros((0, 12)), empty, empty, empty
     q, p, source = q[found], p[found], source[found]
     residual = np.einsum("ij,ij->i", q - model.plane_index.points[idx[found]], normals)
     n_j = np.einsum("nk,nkl->nl", normals, relative[source, :3, :3])  # rows: R_ij^T n
@@ -475,10 +481,47 @@ def _model_system(
     weight = 1.0 / (1.0 + (residual / robust_scale) ** 2) if robust_scale > 0 else np.ones(len(found))
     weighted = jac * weight[:, None]
     starts = np.flatnonzero(np.diff(source, prepend=-1))  # points of one pair are contiguous
-    blocks = np.add.reduceat(weighted[:, :, None] * jac[:, None, :], starts)
+    ends = np.append(starts[1:], len(source))
+    # one small product per pair: a (n, 12, 12) outer-product array summed by reduceat moved ~150
+    # numbers per point through memory and cost more than the closest-point query itself
+    blocks = np.stack([weighted[s:e].T @ jac[s:e] for s, e in zip(starts, ends, strict=True)])
     gradients = np.add.reduceat(weighted * residual[:, None], starts)
     js = [others[s] for s in source[starts]]
-    return js, blocks, gradients, float(residual @ residual), float(weight @ residual**2), len(found)
+    squared = residual**2
+    return (
+        js,
+        blocks,
+        gradients,
+        np.add.reduceat(squared, starts),
+        np.add.reduceat(weight * squared, starts),
+        np.diff(np.append(starts, len(source))).astype(np.float64),
+    )
+
+
+def _edge_budget(
+    models: ScanModels, graph_pairs: Sequence[NeighbourPair], config: RelaxationConfig
+) -> dict[tuple[int, int], tuple[int, float]]:
+    """Data points sampled per pair and the weight each of its point pairs gets.
+
+    Points go to the pairs in proportion to their overlap (the overlapping fraction of the data
+    scan): the strongly overlapping, mostly consecutive pairs carry the local accuracy and need the
+    samples. The weight is set apart from the sampling so that a pair's total pull grows only with
+    overlap**``overlap_exponent``: with 1, a consecutive pair overlapping 90 % outweighs a
+    far-apart one at 25 % by its point count alone, and their residual errors are not independent
+    samples (the same walls, the same calibration), so the chain of consecutive pairs wins over
+    the pairs that close the map.
+    """
+    share = {(p.i, p.j): p.pairs / len(models.points[p.j]) for p in graph_pairs}
+    total = config.pair_points * len(graph_pairs)
+    if config.round_points > 0:
+        total = min(total, config.round_points)
+    unit = total / max(sum(share.values()), 1e-9)
+    budget = {}
+    for key, s in share.items():
+        count = int(np.clip(unit * s, config.min_edge_points, config.edge_points))
+        budget[key] = (count, s**config.overlap_exponent / count)
+    mean = np.mean([c * w for c, w in budget.values()]) / np.mean([c for c, _ in budget.values()])
+    return {key: (c, w / mean) for key, (c, w) in budget.items()}
 
 
 def _joint_step(
@@ -488,14 +531,15 @@ def _joint_step(
     fixed: set[int],
     config: RelaxationConfig,
     robust_scale: float,
+    budget: dict[tuple[int, int], tuple[int, float]],
 ) -> tuple[dict[int, Matrix], float, float]:
     """One Gauss-Newton step of all scans at once over the current closest-point pairs (LUM's round).
 
     Each scan is queried once, by the thinned points of all its graph neighbours at once; the
     joint system is solved by :class:`slam6d.posegraph.BlockSystem`. Returns the new poses of the
-    free scans and the sums of squared and of robustly weighted squared residuals before the step. A
-    little Levenberg damping keeps directions no pair constrains (a scan seeing one flat wall)
-    from running away.
+    free scans and the sums of squared and of robustly weighted squared residuals (each pair's
+    weighted by its ``budget`` weight) before the step. A little Levenberg damping keeps directions
+    no pair constrains (a scan seeing one flat wall) from running away.
     """
     count = len(current)
     diag = np.zeros((count, 6, 6))
@@ -504,25 +548,20 @@ def _joint_step(
     ej: list[int] = []
     off: list[FloatArray] = []
     total, robust = 0.0, 0.0
-    # points per edge in proportion to its overlap, so that the strongly overlapping (mostly
-    # consecutive) pairs, which carry the local accuracy, get the most. On BALM hall that beat an
-    # even share per edge (RPE 0.56 vs 0.68 cm at 1M points, the same self-consistency) and, even
-    # more, equal pair counts per edge (0.86 cm)
-    share = {(p.i, p.j): p.pairs / len(models.points[p.j]) for p in graph_pairs}
-    unit = config.round_points / max(sum(share.values()), 1e-9)
     for i, others in _by_model(graph_pairs).items():
-        per_edge = [int(np.clip(unit * share[(i, j)], 50, config.edge_points)) for j in others]
+        per_edge = [budget[(i, j)][0] for j in others]
         js, blocks, gradients, sq, weighted_sq, _ = _model_system(models, current, i, others, per_edge, robust_scale)
-        total += sq
-        robust += weighted_sq
-        for j, h, g in zip(js, blocks, gradients, strict=True):
-            diag[i] += h[:6, :6]
-            diag[j] += h[6:, 6:]
-            rhs[i] -= g[:6]
-            rhs[j] -= g[6:]
+        for j, h, g, s, ws in zip(js, blocks, gradients, sq, weighted_sq, strict=True):
+            w = budget[(i, j)][1]
+            total += w * s
+            robust += w * ws
+            diag[i] += w * h[:6, :6]
+            diag[j] += w * h[6:, 6:]
+            rhs[i] -= w * g[:6]
+            rhs[j] -= w * g[6:]
             ei.append(i)
             ej.append(j)
-            off.append(h[:6, 6:])
+            off.append(w * h[:6, 6:])
     if not off:
         raise RelaxationError("LUM: no neighbour pair has point pairs with usable normals at the current poses")
     unused = [k for k in range(count) if k not in fixed and not diag[k].any()]
@@ -552,6 +591,7 @@ def lum_relaxation(
     graph_pairs = _strongest(pairs, len(models), config.max_neighbours)
     _check_graph(models, graph_pairs, fixed_set, chosen)
     residual_before = pair_residual(models, current, pairs)
+    budget = _edge_budget(models, graph_pairs, config)
     held = fixed_set | (set(range(len(models))) - set(chosen))
     chi2_before: float | None = None
     chi2_after: float | None = None
@@ -563,8 +603,8 @@ def lum_relaxation(
         # misalignments the relaxation is meant to remove, so the scale halves from the max distance
         scale = config.robust_scale
         if scale > 0:
-            scale = max(scale, 0.5**rounds * models.config.max_distance)
-        moved_poses, chi2, cost = _joint_step(models, current, graph_pairs, held, config, scale)
+            scale = max(scale, config.first_scale * 0.5 ** (rounds - 1) * models.config.max_distance)
+        moved_poses, chi2, cost = _joint_step(models, current, graph_pairs, held, config, scale, budget)
         if chi2_before is None:
             chi2_before = chi2
         chi2_after = chi2
