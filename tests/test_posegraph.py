@@ -1,0 +1,138 @@
+"""The sparse pose-graph solver: the reduced Cholesky system against dense algebra and gtsam, and its failures."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from slam6d.geometry import invert, make_pose
+from slam6d.posegraph import BlockSystem, PoseEdge, RelaxationError, optimize_pose_graph, so3_exp
+
+
+def _random_system(
+    rng: np.random.Generator, count: int, pairs: list[tuple[int, int]]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Normal-equation blocks of random positive definite edge terms, and the same matrix dense."""
+    dense = np.zeros((6 * count, 6 * count))
+    diag = np.zeros((count, 6, 6))
+    off = np.zeros((len(pairs), 6, 6))
+    for e, (i, j) in enumerate(pairs):
+        a = rng.normal(size=(9, 12))
+        h = a.T @ a
+        diag[i] += h[:6, :6]
+        diag[j] += h[6:, 6:]
+        off[e] = h[:6, 6:]
+        for (p, q), block in (((i, i), h[:6, :6]), ((i, j), h[:6, 6:]), ((j, i), h[6:, :6]), ((j, j), h[6:, 6:])):
+            dense[6 * p : 6 * p + 6, 6 * q : 6 * q + 6] += block
+    return diag, off, dense
+
+
+def _loop_graph(rng: np.random.Generator, count: int, loops: int) -> list[PoseEdge]:
+    """A noisy odometry chain with random loop edges, like the 10,000-pose benchmark but smaller."""
+    truth = [np.eye(4)]
+    for _ in range(count - 1):
+        step = make_pose(so3_exp(rng.normal(0, 0.05, 3)), np.array([1.0, 0.0, 0.0]) + rng.normal(0, 0.05, 3))
+        truth.append(truth[-1] @ step)
+    info = np.diag([1 / 0.01**2] * 3 + [1 / 0.002**2] * 3)
+
+    def noisy(i: int, j: int) -> PoseEdge:
+        noise = make_pose(so3_exp(rng.normal(0, 0.002, 3)), rng.normal(0, 0.01, 3))
+        return PoseEdge(i, j, invert(truth[i]) @ truth[j] @ noise, info)
+
+    edges = [noisy(k, k + 1) for k in range(count - 1)]
+    for _ in range(loops):
+        i, j = sorted(rng.choice(count, 2, replace=False))
+        edges.append(noisy(int(i), int(j)))
+    return edges
+
+
+def _chained(edges: list[PoseEdge], count: int) -> list[np.ndarray]:
+    poses = [np.eye(4)]
+    for edge in edges[: count - 1]:
+        poses.append(poses[-1] @ edge.measurement)
+    return poses
+
+
+def test_reduced_cholesky_matches_dense_solves_as_values_change_on_one_pattern() -> None:
+    """Many loop ends (fill between path ends, key-to-key and parallel edges, a fixed pose mid-chain):
+    every solve on the same system, with new values each time, equals a dense solve of that matrix."""
+    rng = np.random.default_rng(3)
+    count = 80
+    pairs = [(k, k + 1) for k in range(count - 1)]
+    pairs += [(3, 40), (40, 3), (41, 70), (10, 11), (55, 12), (12, 13), (70, 71), (20, 60), (60, 61), (79, 0)]
+    ei = np.array([i for i, _ in pairs])
+    ej = np.array([j for _, j in pairs])
+    fixed = {0, 30}
+    system = BlockSystem(count, fixed, ei, ej)
+    assert system.size >= 6 * 9 and len(system.interior) > count // 2
+    free = np.concatenate([np.arange(6 * k, 6 * k + 6) for k in range(count) if k not in fixed])
+    for _ in range(3):
+        diag, off, dense = _random_system(rng, count, pairs)
+        rhs = rng.normal(size=(count, 6))
+        want = np.zeros(6 * count)
+        want[free] = np.linalg.solve(dense[np.ix_(free, free)], rhs.ravel()[free])
+        got = system.solve(diag, off, rhs)
+        np.testing.assert_allclose(got.ravel(), want, rtol=1e-8, atol=1e-10)
+
+
+def test_singular_reduced_system_is_reported() -> None:
+    """Every pose is a loop end, so the rank deficiency reaches the Cholesky of the reduced system."""
+    count = 6
+    pairs = [(k, k + 1) for k in range(count - 1)] + [(0, 2), (1, 3), (2, 4), (3, 5), (5, 0)]
+    ei = np.array([i for i, _ in pairs])
+    ej = np.array([j for _, j in pairs])
+    system = BlockSystem(count, {0}, ei, ej)
+    assert len(system.interior) == 0
+    diag, off, _ = _random_system(np.random.default_rng(4), count, pairs)
+    diag[4, 2, :] = diag[4, :, 2] = 0.0  # pose 4 unconstrained along z
+    for e, (i, j) in enumerate(pairs):
+        if i == 4:
+            off[e, 2, :] = 0.0
+        if j == 4:
+            off[e, :, 2] = 0.0
+    with pytest.raises(RelaxationError, match="singular"):
+        system.solve(diag, off, np.ones((count, 6)))
+
+
+def test_degenerate_information_on_a_loop_graph_fails_with_the_reason() -> None:
+    rng = np.random.default_rng(5)
+    edges = _loop_graph(rng, 60, 8)
+    flat = np.diag([1.0, 1.0, 0.0, 1.0, 1.0, 1.0])  # nothing constrains z anywhere
+    edges = [PoseEdge(e.i, e.j, e.measurement, flat) for e in edges]
+    with pytest.raises(RelaxationError, match=r"singular.*fewer than 6 degrees of freedom"):
+        optimize_pose_graph(_chained(edges, 60), edges, fixed=[0])
+
+
+def test_disconnected_loop_graph_fails_naming_the_loose_scans() -> None:
+    rng = np.random.default_rng(6)
+    edges = [e for e in _loop_graph(rng, 40, 6) if (e.i < 30) == (e.j < 30)]  # 30..39 cut loose
+    with pytest.raises(RelaxationError, match=r"disconnected: 10 scan\(s\) \(30, 31, .*39\)"):
+        optimize_pose_graph(_chained(_loop_graph(rng, 40, 0), 40), edges, fixed=[0])
+
+
+def test_optimum_of_a_loop_graph_matches_gtsam() -> None:
+    gtsam = pytest.importorskip("gtsam")
+    rng = np.random.default_rng(7)
+    count = 1500
+    edges = _loop_graph(rng, count, 75)
+    start = _chained(edges, count)
+    ours = optimize_pose_graph(start, edges, fixed=[0])
+    assert ours.converged and ours.residual_after < 1e-5 * ours.residual_before
+
+    graph = gtsam.NonlinearFactorGraph()
+    information = edges[0].information[[3, 4, 5, 0, 1, 2]][:, [3, 4, 5, 0, 1, 2]]  # gtsam: rotation first
+    noise = gtsam.noiseModel.Gaussian.Information(information)
+    graph.add(gtsam.PriorFactorPose3(0, gtsam.Pose3(start[0]), gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)))
+    for e in edges:
+        graph.add(gtsam.BetweenFactorPose3(e.i, e.j, gtsam.Pose3(e.measurement), noise))
+    values = gtsam.Values()
+    for k, pose in enumerate(start):
+        values.insert(k, gtsam.Pose3(pose))
+    params = gtsam.GaussNewtonParams()
+    params.setRelativeErrorTol(1e-10)
+    result = gtsam.GaussNewtonOptimizer(graph, values, params).optimize()
+
+    assert ours.residual_after == pytest.approx(2 * graph.error(result), rel=1e-6)
+    for k in range(0, count, 97):
+        np.testing.assert_allclose(ours.poses[k], result.atPose3(k).matrix(), atol=1e-4)
+    np.testing.assert_array_equal(np.array(ours.poses)[:, 3], np.tile([0.0, 0.0, 0.0, 1.0], (count, 1)))
