@@ -218,7 +218,7 @@ def _store_plane_normal(normals, valid, row, c00, c01, c02, c11, c12, c22, min_p
         valid[row] = True
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, parallel=True, nogil=True)
 def _normals_kernel(points, neighbours, min_planarity):  # type: ignore[no-untyped-def]
     n = neighbours.shape[0]
     k = neighbours.shape[1]
@@ -276,7 +276,7 @@ def estimate_normals(
         return _normals_kernel(source.points, np.ascontiguousarray(neighbours), float(min_planarity))
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _cell_moments(points, cell_of, cells):  # type: ignore[no-untyped-def]
     """Per cell: count, sum and sum of outer products of its points (one pass, no neighbour search)."""
     moments = np.zeros((cells, 10))
@@ -299,7 +299,7 @@ def _cell_moments(points, cell_of, cells):  # type: ignore[no-untyped-def]
     return moments
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _cell_normals_kernel(moments, min_points, min_planarity):  # type: ignore[no-untyped-def]
     n = moments.shape[0]
     normals = np.zeros((n, 3))
@@ -585,8 +585,12 @@ class _StackedSearch(nn.NeighbourIndex):
             return self.model.sample_points(np.arange(len(self), dtype=np.int64))
         return self.model.points
 
-    def split(self, indices: IndexArray) -> Iterator[tuple[int, NDArray[np.bool_], IndexArray]]:
-        """(member, which of ``indices`` are its, their indices within it) for each member hit."""
+    def split(self, indices: IndexArray) -> Iterator[tuple[int, NDArray[np.bool_] | slice, IndexArray]]:
+        """(member, which of ``indices`` are its (a mask, or all of them), their indices within it) for each member hit."""
+        if len(self.model.members) == 1:  # the usual metascan of one scan: no search, no masks
+            if len(indices):
+                yield 0, slice(None), indices
+            return
         member = np.searchsorted(self.offsets, indices, side="right") - 1
         for k in range(len(self.model.members)):
             chosen = member == k
@@ -594,6 +598,10 @@ class _StackedSearch(nn.NeighbourIndex):
                 yield k, chosen, indices[chosen] - self.offsets[k]
 
     def nearest(self, queries: FloatArray, max_distance: float) -> tuple[FloatArray, IndexArray]:
+        if len(self.model.members) == 1:
+            member = self.model.members[0]
+            tree = member.plane_index if self.plane else member.index
+            return tree.nearest(transform_points(self.model._inverse[0], queries), max_distance)
         best_d = np.full(len(queries), np.inf)
         best_i = np.full(len(queries), -1, dtype=np.int64)
         for k, m in enumerate(self.model.members):

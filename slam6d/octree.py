@@ -81,7 +81,7 @@ def _table_size(count: int) -> int:
     return 1 << max(4, math.ceil(math.log2(max(count, 1) * 2 + 1)))
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _build_table(keys: IntArray, size: np.int64) -> IntArray:
     table = np.full(size, -1, dtype=np.int64)
     mask = size - 1
@@ -106,7 +106,7 @@ def contains_key(table: IntArray, key: np.int64) -> bool:
         slot = (slot + 1) & mask
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _contains_many(table: IntArray, keys: IntArray) -> NDArray[np.bool_]:
     out = np.zeros(len(keys), dtype=np.bool_)
     for i in range(len(keys)):
@@ -115,7 +115,7 @@ def _contains_many(table: IntArray, keys: IntArray) -> NDArray[np.bool_]:
     return out
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _closest_per_cell(points: FloatArray, lower: FloatArray, voxel_size: float, size: np.int64) -> NDArray[np.bool_]:
     """Mark, for every occupied voxel, the point nearest its centre (lowest index on ties).
 
@@ -152,7 +152,7 @@ def _closest_per_cell(points: FloatArray, lower: FloatArray, voxel_size: float, 
     return keep
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, parallel=True, nogil=True)
 def _count_hits(
     points: FloatArray,
     rotations: FloatArray,
@@ -204,7 +204,7 @@ class KeySet:
 # ---------------------------------------------------------------- voxel reduction
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _bounds(points: FloatArray) -> tuple[FloatArray, FloatArray]:
     """Per-axis min and max in one pass (numpy's axis-0 reduction over 3-wide rows is ~10x slower)."""
     lower = points[0].copy()

@@ -25,8 +25,10 @@ reuses them.
 
 from __future__ import annotations
 
+import os
 import time
 from collections.abc import Callable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -60,6 +62,10 @@ from slam6d.scan import ScanSequence
 from slam6d.trace import to_jsonable, write_trace
 
 MATCHING = ("metascan", "pairwise")
+# Scans are reduced on this many threads, and prepared for matching ahead of the one being registered
+# (PREPARE_AHEAD scans) on a second thread.
+WORKER_THREADS = min(2, os.cpu_count() or 1)
+PREPARE_AHEAD = 3
 GUESS_MODES = ("auto", "always", "never")
 RELAXATION = ("lum", "simultaneous", "none")
 
@@ -253,14 +259,21 @@ class Pipeline:
             self._icp_config, epsilon=max(config.icp.epsilon, config.registration_epsilon)
         )
         began = time.perf_counter()
-        reduced = [self._reduce(scan.points) for scan in sequence]
+        # The per-scan work here and in _prepare is compiled code and kd-tree builds that release the
+        # GIL, so it runs on a second thread beside the main one.
+        points = [scan.points for scan in sequence]
+        if WORKER_THREADS > 1 and len(points) > 1:
+            with ThreadPoolExecutor(WORKER_THREADS) as pool:
+                reduced = list(pool.map(self._reduce, points))
+        else:
+            reduced = [self._reduce(p) for p in points]
         self.models = ScanModels(reduced, self._icp_config)
-        self._registration_models: dict[int, ModelIndex] = {}
+        self._worker = ThreadPoolExecutor(1) if WORKER_THREADS > 1 else None
+        self._preparing: dict[int, Future[tuple[ModelIndex, np.ndarray]]] = {}
         self.summaries = [
             ScanSummary(k, scan.name or f"scan{k:03d}", len(scan), len(reduced[k])) for k, scan in enumerate(sequence)
         ]
         self._add_time("reduction", time.perf_counter() - began)
-        self._data: dict[int, np.ndarray] = {}
         self._occupancy: dict[int, Occupancy] = {}
         self._events_gen: Iterator[Event] = self._events()
 
@@ -326,11 +339,55 @@ class Pipeline:
         return self.models.points[index]
 
     def _data_points(self, index: int) -> np.ndarray:
-        if index not in self._data:
-            points = self.models.points[index]
-            size = self.config.data_voxel_size
-            self._data[index] = points[reduce_points(points, size)] if size > self.config.voxel_size else points
-        return self._data[index]
+        """Scan ``index`` thinned to ``data_voxel_size``, as it is matched against a model."""
+        return self._prepared(index)[1]
+
+    def _prepared(self, index: int) -> tuple[ModelIndex, np.ndarray]:
+        """Scan ``index``'s registration model (kd-tree and normals built) and its thinned data points.
+
+        Neither depends on any pose, so they are made ahead on the worker thread while ICP runs on
+        the main one (``_prefetch``); asking for one not started yet makes it here.
+        """
+        future = self._preparing.get(index)
+        if future is None:
+            future = Future()
+            future.set_result(self._prepare(index))
+            self._preparing[index] = future
+        return future.result()
+
+    def _prefetch(self, indices: range) -> None:
+        for index in indices:
+            if self._worker is not None and index not in self._preparing and index < len(self.sequence):
+                self._preparing[index] = self._worker.submit(self._prepare, index)
+
+    def _prepare(self, index: int) -> tuple[ModelIndex, np.ndarray]:
+        shared = self.models.index(index)
+        cell = self.config.normal_cell_voxels * self.config.voxel_size
+        model = shared
+        if cell > 0 and len(shared.plane_indices) == len(shared.points):
+            model = ModelIndex(
+                shared.points,
+                normal_neighbours=shared.normal_neighbours,
+                normal_voxel_size=0.0,
+                backend=shared.backend,
+                threads=shared.threads,
+                normal_cell=cell,
+                index=shared.index,
+            )
+        # every normal now (per cube, k-NN where a cube gives none), so that ICP on the main thread
+        # never waits for one: estimating them there, on demand, was a fifth of the registration time
+        model.plane_normals()
+        points = self.models.points[index]
+        size = self.config.data_voxel_size
+        data = points[reduce_points(points, size)] if size > self.config.voxel_size else points
+        return model, data
+
+    def _finish_preparing(self) -> None:
+        """Stop the worker once the work started ahead is done, so no thread touches the models after
+        registration (an error there belongs to a scan no match needed, and is raised if one does)."""
+        if self._worker is not None:
+            self._worker.shutdown(wait=True)
+            self._worker = None
 
     def max_range(self) -> float:
         """The laser's reach: configured, or the median over scans of each scan's 99th-percentile range."""
@@ -355,7 +412,9 @@ class Pipeline:
         self.stage = "registration"
         self.history[0].append((self.poses[0].copy(), FrameType.ICP))
         for index in range(1, len(self.sequence)):
+            self._prefetch(range(index - 1, index + PREPARE_AHEAD))
             yield from self._register(index)
+        self._finish_preparing()
         if self.config.loops and len(self.sequence) > 2:
             self.stage = "loops"
             yield from self._loop_stage()
@@ -377,23 +436,7 @@ class Pipeline:
     def registration_model(self, index: int) -> ModelIndex:
         """Scan ``index`` as a sequential-matching model: its kd-tree (shared with the loop and
         relaxation stages, built once) and its normals (per cube when ``normal_cell_voxels`` > 0)."""
-        if index not in self._registration_models:
-            shared = self.models.index(index)
-            cell = self.config.normal_cell_voxels * self.config.voxel_size
-            if cell > 0 and len(shared.plane_indices) == len(shared.points):
-                model = ModelIndex(
-                    shared.points,
-                    normal_neighbours=shared.normal_neighbours,
-                    normal_voxel_size=0.0,
-                    backend=shared.backend,
-                    threads=shared.threads,
-                    normal_cell=cell,
-                    index=shared.index,
-                )
-            else:
-                model = shared
-            self._registration_models[index] = model
-        return self._registration_models[index]
+        return self._prepared(index)[0]
 
     def _model(self, index: int) -> tuple[ModelIndex, Matrix, list[int]]:
         """Model for scan ``index``: (index, world_from_model, scans in it)."""
