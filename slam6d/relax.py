@@ -505,11 +505,11 @@ def _edge_budget(
 
     Points go to the pairs in proportion to their overlap (the overlapping fraction of the data
     scan): the strongly overlapping, mostly consecutive pairs carry the local accuracy and need the
-    samples. The weight is set apart from the sampling so that a pair's total pull grows only with
-    overlap**``overlap_exponent``: with 1, a consecutive pair overlapping 90 % outweighs a
-    far-apart one at 25 % by its point count alone, and their residual errors are not independent
-    samples (the same walls, the same calibration), so the chain of consecutive pairs wins over
-    the pairs that close the map.
+    samples. The weight is set apart from the sampling so that a pair's total pull grows with
+    overlap**``overlap_exponent``. With 1 (the default) every point pair weighs the same. On BALM
+    hall 0.5 and 0 (every pair pulling equally) moved the self-consistency check by less than
+    0.1 cm and raised the RPE (0.57, 0.59 vs 0.56 cm); at full resolution the far-apart pairs do
+    not agree with each other either, so favouring them does not make them agree.
     """
     share = {(p.i, p.j): p.pairs / len(models.points[p.j]) for p in graph_pairs}
     total = config.pair_points * len(graph_pairs)

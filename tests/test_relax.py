@@ -194,3 +194,20 @@ def test_neighbours_need_overlap(loop_scans) -> None:  # type: ignore[no-untyped
     assert not any(5 in (p.i, p.j) for p in neighbour_pairs(models, moved, min_pairs=250))
     with pytest.raises(RelaxationError, match=r"disconnected.*5"):
         lum_relaxation(models, moved, fixed=[0])
+
+
+@pytest.mark.parametrize("exponent", [1.0, 0.0])
+def test_lum_budget_grows_with_the_graph_and_weights_pairs_by_overlap(loop_scans, exponent: float) -> None:  # type: ignore[no-untyped-def]
+    """Points per round follow the number of pairs; a pair's total pull follows overlap**exponent."""
+    from slam6d.relax import _edge_budget
+
+    sim, models = loop_scans
+    pairs = neighbour_pairs(models, sim.truth, min_pairs=250)
+    config = RelaxationConfig(pair_points=300, overlap_exponent=exponent, min_edge_points=1, edge_points=10**6)
+    budget = _edge_budget(models, pairs, config)
+    assert sum(c for c, _ in budget.values()) == pytest.approx(300 * len(pairs), rel=0.02)
+    overlap = np.array([p.pairs / len(models.points[p.j]) for p in pairs])
+    pull = np.array([c * w for c, w in (budget[(p.i, p.j)] for p in pairs)])
+    np.testing.assert_allclose(pull / pull.mean(), overlap**exponent / np.mean(overlap**exponent), rtol=0.05)
+    halved = _edge_budget(models, pairs[::2], config)
+    assert sum(c for c, _ in halved.values()) == pytest.approx(300 * len(pairs[::2]), rel=0.02)
