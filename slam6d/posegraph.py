@@ -432,13 +432,19 @@ def _pack_edges(edges: Sequence[PoseEdge], count: int) -> _Edges:
     return _Edges(i, j, meas[:, :3, :3], meas[:, :3, 3], info)
 
 
-def check_connected(count: int, edge_pairs: Iterable[tuple[int, int]], fixed: Iterable[int]) -> None:
-    """Every pose must be tied to a fixed pose through edges, or its position is undetermined."""
-    pairs = np.array(list(edge_pairs), dtype=np.int64).reshape(-1, 2)
+def check_connected(
+    count: int, edge_pairs: Iterable[tuple[int, int]] | NDArray[np.int64], fixed: Iterable[int]
+) -> None:
+    """Every pose must be tied to a fixed pose through edges, or its position is undetermined.
+
+    ``edge_pairs`` may be an (edges, 2) array, which spares a large graph the round trip through tuples.
+    """
+    pairs = np.asarray(edge_pairs if isinstance(edge_pairs, np.ndarray) else list(edge_pairs), dtype=np.int64)
+    pairs = pairs.reshape(-1, 2)
     graph = sp.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(count, count))
     _, labels = csgraph.connected_components(graph, directed=False)
-    anchored = {int(labels[f]) for f in fixed}
-    loose = [k for k in range(count) if int(labels[k]) not in anchored]
+    anchored = [int(labels[f]) for f in fixed]
+    loose = np.flatnonzero(~np.isin(labels, anchored)).tolist()
     if loose:
         shown = ", ".join(str(k) for k in loose[:12]) + (" ..." if len(loose) > 12 else "")
         raise RelaxationError(
@@ -449,15 +455,15 @@ def check_connected(count: int, edge_pairs: Iterable[tuple[int, int]], fixed: It
 
 def _errors(rot: NDArray, trans: NDArray, e: _Edges) -> tuple[NDArray, NDArray, NDArray, NDArray]:
     ri, rj = rot[e.i], rot[e.j]
-    rij = np.einsum("mki,mkj->mij", ri, rj)
+    rij = np.matmul(np.transpose(ri, (0, 2, 1)), rj)  # batched matmul: several times faster than einsum here
     tij = np.einsum("mki,mk->mi", ri, trans[e.j] - trans[e.i])
     et = tij - e.tz
-    er = so3_log(np.einsum("mki,mkj->mij", e.rz, rij))
+    er = so3_log(np.matmul(np.transpose(e.rz, (0, 2, 1)), rij))
     return np.concatenate([et, er], axis=1), rij, tij, er
 
 
 def _chi2(err: NDArray, info: NDArray) -> float:
-    return float(np.einsum("mi,mij,mj->", err, info, err))
+    return float(np.sum(err * np.matmul(info, err[:, :, None])[:, :, 0]))
 
 
 def optimize_pose_graph(
@@ -484,7 +490,7 @@ def optimize_pose_graph(
     if any(f < 0 or f >= count for f in fixed_set):
         raise RelaxationError(f"fixed pose index out of range for {count} poses: {sorted(fixed_set)}")
     packed = _pack_edges(edges, count)
-    check_connected(count, zip(packed.i.tolist(), packed.j.tolist(), strict=True), fixed_set)
+    check_connected(count, np.stack([packed.i, packed.j], axis=1), fixed_set)
 
     stack = np.array(poses, dtype=np.float64)
     rot, trans = stack[:, :3, :3].copy(), stack[:, :3, 3].copy()
