@@ -177,8 +177,9 @@ def test_drifted_odometry_reproduces_the_agreed_balm_generator(shared_data) -> N
 
 @pytest.mark.slow
 @pytest.mark.xfail(
-    reason="targets not met: self-consistency mean 2.9-3.0 cm (20-70 7.8 cm: its own ICP fit is 11 % / 16 cm rms, "
-    "small_gicp + gtsam gets 8.8 cm there), 57-88 1.3-1.5 cm; RPE 0.56 cm / 0.042 deg is met",
+    reason="targets not met: self-consistency mean 2.95-3.0 cm (20-70 8.1 cm: its own ICP fit is 11 % / 16 cm rms, "
+    "small_gicp + gtsam gets 8.8 cm there; 10-88 3.1 cm), 57-88 1.5 cm; RPE 0.56 cm / 0.042 deg is met. Even the joint "
+    "least-squares optimum over all 3,916 pairs at 5 cm with 8M points per round leaves 2.5 cm (10-88 3.6, 20-70 7.3)",
     strict=False,
 )
 def test_balm_hall_from_drifted_odometry(shared_data) -> None:  # type: ignore[no-untyped-def]
