@@ -570,12 +570,10 @@ def _accumulate_normal_blocks(
     gradient = np.zeros((count, 6))
     ai = np.zeros((6, 6))
     aj = np.zeros((6, 6))
-    wi = np.zeros((6, 6))
-    wj = np.zeros((6, 6))
+    wi = np.empty((6, 6))
+    wj = np.empty((6, 6))
     for m in range(len(ei)):
         t, r, jr = tij[m], rij[m], jr_inv[m]
-        ai[:] = 0.0
-        aj[:] = 0.0
         for a in range(3):
             ai[a, a] = -1.0
             for b in range(3):
@@ -589,15 +587,20 @@ def _accumulate_normal_blocks(
         ai[1, 3], ai[1, 5] = t[2], -t[0]
         ai[2, 3], ai[2, 4] = -t[1], t[0]
         omega = info[m]
-        for a in range(6):
+        # W = A^T Ω, skipping the zero blocks: A_i = [[-I, S], [0, B]] and A_j = [[R, 0], [0, J]]
+        for a in range(3):
             for b in range(6):
                 si = 0.0
                 sj = 0.0
-                for k in range(6):
-                    si += ai[k, a] * omega[k, b]
+                sr = 0.0
+                for k in range(3):
+                    si += ai[k, 3 + a] * omega[k, b] + ai[3 + k, 3 + a] * omega[3 + k, b]
                     sj += aj[k, a] * omega[k, b]
-                wi[a, b] = si
+                    sr += aj[3 + k, 3 + a] * omega[3 + k, b]
+                wi[a, b] = -omega[a, b]
+                wi[3 + a, b] = si
                 wj[a, b] = sj
+                wj[3 + a, b] = sr
         i, j = ei[m], ej[m]
         for a in range(6):
             gi = 0.0
@@ -607,17 +610,24 @@ def _accumulate_normal_blocks(
                 gj += wj[a, k] * err[m, k]
             gradient[i, a] += gi
             gradient[j, a] += gj
-            for b in range(6):
+            for b in range(3):  # W A, again over the non-zero blocks of A only
                 sii = 0.0
                 sjj = 0.0
+                sjr = 0.0
                 sij = 0.0
-                for k in range(6):
-                    sii += wi[a, k] * ai[k, b]
+                sir = 0.0
+                for k in range(3):
+                    sii += wi[a, k] * ai[k, 3 + b] + wi[a, 3 + k] * ai[3 + k, 3 + b]
                     sjj += wj[a, k] * aj[k, b]
+                    sjr += wj[a, 3 + k] * aj[3 + k, 3 + b]
                     sij += wi[a, k] * aj[k, b]
-                diag[i, a, b] += sii
+                    sir += wi[a, 3 + k] * aj[3 + k, 3 + b]
+                diag[i, a, b] -= wi[a, b]
+                diag[i, a, 3 + b] += sii
                 diag[j, a, b] += sjj
+                diag[j, a, 3 + b] += sjr
                 off[m, a, b] = sij
+                off[m, a, 3 + b] = sir
     return diag, off, gradient
 
 
