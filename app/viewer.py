@@ -52,6 +52,7 @@ class SessionViewer:
         self.nodes: list[Any] = []
         self.residuals: list[np.ndarray] | None = None
         self.highlight: dict[int, tuple[int, int, int]] = {}
+        self.selected: dict[int, tuple[int, int, int]] = {}  # scans picked for editing; drawn over highlight
         self.pose_version = 0  # counts changes of the shown poses: what edge residuals were computed for
         self.edge_rms: dict[tuple[int, int], float] = {}
         self.edge_rms_version = -1
@@ -274,6 +275,8 @@ class SessionViewer:
                 )
 
     def _colours(self, k: int) -> np.ndarray | tuple[int, int, int]:
+        if k in self.selected:
+            return self.selected[k]
         if k in self.highlight:
             return self.highlight[k]
         mode = self.colour.value
@@ -299,6 +302,20 @@ class SessionViewer:
     def paint(self, k: int) -> None:
         """Send scan ``k``'s colours; a single colour goes as one RGB triple, not one per point."""
         self.nodes[k].colors = np.asarray(self._colours(k), np.uint8)
+
+    def pick(self, ray_origin: Any, ray_direction: Any) -> int | None:
+        """The scan under a click: tested on the displayed points at the poses shown."""
+        with self.lock:
+            return scene.pick_scan(self.local, self.poses, ray_origin, ray_direction)
+
+    def select(self, selected: dict[int, tuple[int, int, int]]) -> None:
+        """Mark scans picked for editing in their own colour; only scans whose colour changes are resent."""
+        with self.lock, self.server.atomic():
+            changed = set(self.selected) ^ set(selected) | {k for k in selected if self.selected.get(k) != selected[k]}
+            self.selected = dict(selected)
+            for k in changed:
+                if k < len(self.nodes):
+                    self.paint(k)
 
     def _set_point_size(self) -> None:
         for node in self.nodes:
@@ -378,6 +395,8 @@ class SessionViewer:
                 try:
                     summary = self.editor.residuals(self.session_id, poses)
                     with self.lock:
+                        if self.stopped:
+                            return
                         if version != self.pose_version:
                             continue  # moved meanwhile: the next request (or a redraw) computes them
                         self.edge_rms = {(int(e["i"]), int(e["j"])): float(e["rms"]) for e in summary.edges}
@@ -485,7 +504,8 @@ class SessionViewer:
         }
 
     def stop(self) -> None:
-        self.stopped = True
+        with self.lock:  # no background drawing is half-way when the server goes
+            self.stopped = True
         if self.stepper is not None:
             self.stepper.pause()
         self.server.stop()

@@ -189,3 +189,35 @@ def test_the_view_recolours_an_edge_when_a_scan_moves_off(corridor_view):
     assert tuple(after[1]) == tuple(top)  # the moved one: top of the scale
     assert view.edge_rms[(1, 2)] > 3 * view.edge_rms[(0, 1)]
     assert "worst 1–2" in view.edge_legend.content
+
+
+class _Click:
+    def __init__(self, origin, direction) -> None:  # type: ignore[no-untyped-def]
+        self.ray_origin, self.ray_direction = tuple(origin), tuple(direction)
+        self.client_id, self.client = -1, None
+
+
+def test_clicking_scans_in_the_view_picks_a_then_b_and_highlights_them(corridor_view):
+    from app.panels.edit import PICKED_A, PICKED_B
+
+    view = corridor_view
+    edit = next(p for p in view.panels if type(p).__name__ == "EditPanel")
+    apart = [p.copy() for p in view.poses]
+    for k, p in enumerate(apart):
+        p[2, 3] += 40.0 * k  # the corridor scans overlap; stack them 40 m apart to click one alone
+    view.set_poses(apart)
+    camera = np.array([10.0, -80.0, 40.0])
+    centres = [view.local[k].astype(float).mean(axis=0) @ apart[k][:3, :3].T + apart[k][:3, 3] for k in range(3)]
+    painted = []
+    view.paint = lambda k: painted.append(k)  # type: ignore[method-assign]  # what would be resent
+
+    edit._clicked(_Click(camera, centres[2] - camera))
+    assert int(edit.scan_a.value) == 2 and view.selected == {2: PICKED_A}  # B not chosen yet: not marked
+    assert "Picked scan **2**" in edit.pick_status.content and "as **A**" in edit.pick_status.content
+    edit._clicked(_Click(camera, centres[0] - camera))
+    assert (int(edit.scan_a.value), int(edit.scan_b.value)) == (2, 0)
+    assert view.selected == {2: PICKED_A, 0: PICKED_B}
+    assert view._colours(0) == PICKED_B and view._colours(2) == PICKED_A and view._colours(1) == scene.scan_color(1)
+    assert 0 in painted and 2 in painted
+    edit._clicked(_Click(camera, (0.0, -1.0, 0.5)))  # away from the map: nothing picked, nothing changed
+    assert (int(edit.scan_a.value), int(edit.scan_b.value)) == (2, 0) and "No scan" in edit.pick_status.content

@@ -10,6 +10,8 @@ from app.editing import editor_for
 from slam6d.geometry import make_pose, quaternion_to_rotation, rotation_to_quaternion
 
 _NONE = "—"
+PICKED_A = (255, 255, 255)
+PICKED_B = (255, 60, 200)
 
 
 class EditPanel:
@@ -19,7 +21,10 @@ class EditPanel:
         self.session_id = viewer.session_id
         self.gizmo: Any = None
         gui = viewer.server.gui
+        self.next_pick = "A"  # clicks in the view alternate: A, then B
+        self.chosen: set[str] = set()  # "A", "B": drawn highlighted once someone picked or typed them
         with gui.add_folder("Edit graph", expand_by_default=False):
+            self.pick_status = gui.add_markdown("Click a scan in the view to pick scan A, then B.")
             self.scan_a = gui.add_number("Scan A", 0, min=0, step=1)
             self.scan_b = gui.add_number("Scan B", 1, min=0, step=1)
             self.force = gui.add_checkbox("Keep edge even if ICP disagrees", False)
@@ -31,11 +36,45 @@ class EditPanel:
             self.icp_here = gui.add_button("ICP from here", disabled=True)
             self.result = gui.add_markdown("")
         run = viewer._run_safely
+        viewer.server.scene.on_click()(lambda e: run(lambda: self._clicked(e)))
+        self.scan_a.on_update(lambda e: run(lambda: self._typed("A", e)))
+        self.scan_b.on_update(lambda e: run(lambda: self._typed("B", e)))
         self.add.on_click(lambda e: run(lambda: self._add(e)))
         self.delete.on_click(lambda e: run(lambda: self._delete(e)))
         self.drag.on_update(lambda _: run(self._toggle_gizmo))
         self.commit_move.on_click(lambda e: run(lambda: self._move(e, refine=False)))
         self.icp_here.on_click(lambda e: run(lambda: self._move(e, refine=True)))
+
+    def _clicked(self, event: Any) -> None:
+        k = self.viewer.pick(event.ray_origin, event.ray_direction)
+        if k is None:
+            self.pick_status.content = f"No scan under the cursor; the next click still picks scan {self.next_pick}."
+            return
+        self.pick(k)
+
+    def pick(self, k: int) -> None:
+        """Scan ``k`` becomes A or B (alternating), as if typed in, and is highlighted."""
+        which, self.next_pick = self.next_pick, "B" if self.next_pick == "A" else "A"
+        self.chosen.add(which)
+        field = self.scan_a if which == "A" else self.scan_b
+        field.value = k
+        self._highlight()
+        name = self.viewer.state.sequence().scans[k].name
+        self.pick_status.content = (
+            f"Picked scan **{k}** ({name}) as **{which}** · A = {int(self.scan_a.value)}, "
+            f"B = {int(self.scan_b.value)} · the next click picks {self.next_pick}"
+        )
+
+    def _typed(self, which: str, event: Any) -> None:
+        if event.client is not None:  # typed by a person (picks set the fields from here, client None)
+            self.chosen.add(which)
+        self._highlight()
+
+    def _highlight(self) -> None:
+        selected = {int(self.scan_b.value): PICKED_B} if "B" in self.chosen else {}
+        if "A" in self.chosen:
+            selected[int(self.scan_a.value)] = PICKED_A  # A wins when both name one scan
+        self.viewer.select(selected)
 
     def _add(self, event: Any) -> None:
         i, j = int(self.scan_a.value), int(self.scan_b.value)
