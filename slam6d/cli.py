@@ -9,13 +9,14 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import replace
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
-from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
 from slam6d.errors import Slam6dError
+
+if TYPE_CHECKING:
+    from rich.console import Console
 
 # Set before numpy loads OpenBLAS. The engine's BLAS calls are thin ((N, 3) by (3, 3) products); BLAS
 # threads spinning between them starve the kd-tree and numba threads on a shared 2-core machine:
@@ -23,18 +24,43 @@ from slam6d.errors import Slam6dError
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, help="6D SLAM for 3D laser scans (Kurt3D method).")
-err = Console(stderr=True)
+
+
+class _Stderr:
+    """rich's stderr console, made on first use: importing rich costs a tenth of a second that a
+    command whose output goes to a file or a pipe does not need to pay."""
+
+    _console: Console | None = None
+
+    @property
+    def console(self) -> Console:
+        if _Stderr._console is None:
+            from rich.console import Console
+
+            _Stderr._console = Console(stderr=True)
+        return _Stderr._console
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.console, name)
+
+
+err = _Stderr()
 
 
 @contextmanager
 def progress_bar(description: str) -> Iterator[callable]:  # type: ignore[valid-type]
     """A rich progress bar on stderr; yields ``update(done, total)`` for the engine's callbacks."""
+    if not sys.stderr.isatty():  # rich would draw nothing here
+        yield lambda done, total: None
+        return
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
     with Progress(
         TextColumn("[bold]{task.description}"),
         BarColumn(),
         MofNCompleteColumn(),
         TimeElapsedColumn(),
-        console=err,
+        console=err.console,
         transient=False,
         disable=not err.is_terminal,
     ) as progress:
@@ -258,14 +284,15 @@ def run(
 ) -> None:
     """Register a whole sequence: sequential ICP, loop closing, global relaxation; write the trajectory."""
     import time
+    from concurrent.futures import ThreadPoolExecutor
 
-    from slam6d.icp import ICPConfig
-    from slam6d.io.registry import ReadOptions, read_sequence
-    from slam6d.pipeline import Pipeline, PipelineConfig, write_results
+    from slam6d.io.registry import ReadOptions, read_sequence, resolve_format
 
-    began = time.perf_counter()
-    try:
-        config = PipelineConfig(
+    def make_config() -> Any:
+        from slam6d.icp import ICPConfig
+        from slam6d.pipeline import PipelineConfig
+
+        return PipelineConfig(
             voxel_size=voxel,
             matching=matching,
             metascan_scans=metascan_scans,
@@ -275,11 +302,40 @@ def run(
             loop_closing=loop_closing,
             relaxation=relaxation,
         )
-    except ValueError as exc:
-        raise typer.BadParameter(str(exc)) from None
-    with progress_bar("reading scans") as update:
-        sequence = read_sequence(source, fmt, ReadOptions(min_range, max_range), first, last, poses, progress=update)
-    read_seconds = time.perf_counter() - began
+
+    began = time.perf_counter()
+    if source.exists():
+        resolve_format(source, fmt)  # loads the format modules here, so the thread below never waits on one
+    # The engine (scipy, numba's compiler registries: ~0.4 s of imports) loads and checks the options on
+    # a thread while the scans are read, which is mostly compiled parsing without the GIL. Bad options
+    # stop the reading at the next scan.
+    with ThreadPoolExecutor(1) as pool:
+        configured = pool.submit(make_config)
+
+        def stop_on_bad_options() -> None:
+            if configured.done() and configured.exception() is not None:
+                raise _BadOptions
+
+        try:
+            with progress_bar("reading scans") as update:
+                sequence = read_sequence(
+                    source,
+                    fmt,
+                    ReadOptions(min_range, max_range),
+                    first,
+                    last,
+                    poses,
+                    progress=lambda done, total: (update(done, total), stop_on_bad_options()),
+                )
+        except _BadOptions:
+            pass
+        read_seconds = time.perf_counter() - began
+        try:
+            config = configured.result()
+        except ValueError as exc:
+            raise typer.BadParameter(str(exc)) from None
+    from slam6d.pipeline import Pipeline, write_results
+
     pipeline = Pipeline(sequence, config)
     with progress_bar("registering") as update:
         report = pipeline.run(progress=lambda _stage, done, total: update(done, total))
@@ -294,6 +350,10 @@ def run(
     stages = ", ".join(f"{k} {v:.2f}s" for k, v in report.stage_seconds.items())
     typer.echo(f"times: reading {read_seconds:.2f}s, {stages}; total {time.perf_counter() - began:.2f}s")
     typer.echo(f"wrote {paths['poses']}, {paths['report']} and {len(sequence)} .frames files")
+
+
+class _BadOptions(Exception):  # noqa: N818 - a signal, not an error shown to anyone
+    """Stops reading scans once the options turned out invalid."""
 
 
 def main() -> None:

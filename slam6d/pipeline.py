@@ -275,6 +275,7 @@ class Pipeline:
         ]
         self._add_time("reduction", time.perf_counter() - began)
         self._occupancy: dict[int, Occupancy] = {}
+        self._max_range: float | None = None
         self._events_gen: Iterator[Event] = self._events()
 
     # -- public stepping API
@@ -393,8 +394,10 @@ class Pipeline:
         """The laser's reach: configured, or the median over scans of each scan's 99th-percentile range."""
         if self.config.max_range is not None:
             return float(self.config.max_range)
-        ranges = [np.percentile(np.linalg.norm(p, axis=1), 99) for p in self.models.points]
-        return float(np.median(ranges))
+        if self._max_range is None:  # asked by the loop stage and the report
+            ranges = [np.percentile(np.sqrt(np.einsum("ij,ij->i", p, p)), 99) for p in self.models.points]
+            self._max_range = float(np.median(ranges))
+        return self._max_range
 
     def _set_pose(self, index: int, pose: Matrix, flag: int) -> None:
         self.poses[index] = np.array(pose, dtype=np.float64)

@@ -165,6 +165,47 @@ def test_cli_run_writes_poses_frames_and_report(tmp_path) -> None:
     assert report["relaxation"] == "lum" and "registration" in report["stage_seconds"]
 
 
+def test_cli_run_refuses_bad_options_without_reading_every_scan(tmp_path, monkeypatch) -> None:
+    """The options are checked on a thread while the scans are read; a bad one stops the reading."""
+    import threading
+    from dataclasses import replace
+
+    from typer.testing import CliRunner
+
+    from slam6d.cli import app
+    from slam6d.io import registry, uos
+
+    for k in range(40):
+        uos.write_uos_scan(tmp_path, k, np.random.default_rng(k).uniform(-500, 500, (200, 3)), np.eye(4))
+    checked = threading.Event()
+    real_read, reads = uos.UOS_FORMAT.read, []
+
+    def slow_read(path):  # type: ignore[no-untyped-def]
+        checked.wait(10)  # the options are judged before the first scan comes back
+        reads.append(path)
+        return real_read(path)
+
+    monkeypatch.setitem(registry._FORMATS, "uos", replace(uos.UOS_FORMAT, read=slow_read))
+    import slam6d.pipeline
+
+    real_init = slam6d.pipeline.PipelineConfig.__post_init__
+
+    def post_init(self):  # type: ignore[no-untyped-def]
+        try:
+            real_init(self)
+        finally:
+            checked.set()
+
+    monkeypatch.setattr(slam6d.pipeline.PipelineConfig, "__post_init__", post_init)
+    result = CliRunner().invoke(
+        app, ["run", str(tmp_path), "--format", "uos", "--out", str(tmp_path / "out"), "--matching", "sideways"]
+    )
+    assert result.exit_code == 2, result.output
+    assert "matching must be one of" in result.output
+    assert len(reads) < 10, len(reads)
+    assert not (tmp_path / "out").exists()
+
+
 def test_drifted_odometry_reproduces_the_agreed_balm_generator(shared_data) -> None:  # type: ignore[no-untyped-def]
     from slam6d.drift import drifted_odometry
     from slam6d.metrics import relative_pose_error
