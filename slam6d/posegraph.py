@@ -476,11 +476,14 @@ def optimize_pose_graph(
 ) -> PoseGraphResult:
     """Least-squares poses for a graph of relative measurements; ``fixed`` poses do not move.
 
-    Gauss-Newton, with Levenberg damping only when a step would raise χ². It stops when an
-    iteration lowers χ² by less than ``tolerance`` times its value, or when the step that the
-    current factorisation predicts from the new gradient (one extra solve, no new factorisation)
-    would: near the optimum that saves the last factorisation, which only confirmed convergence.
-    Raises :class:`RelaxationError` on a disconnected graph, on non-finite input, or when the
+    Gauss-Newton, with Levenberg damping only when a step would raise χ². When the start's
+    rotations are far off (drift), they are first replaced by the chordal estimate from the
+    rotation constraints alone (:func:`_chordal_rotations`), which spares the iterations that would
+    only turn them. It stops when an iteration lowers χ² by less than ``tolerance`` times its
+    value, or when the step delivered the decrease its linear model promised to within that
+    much: the next step could only gain about as little (quadratic convergence), so the
+    factorisation that would merely confirm convergence is saved. ``residual_before`` is the χ²
+    of the given poses. Raises :class:`RelaxationError` on a disconnected graph, on non-finite input, or when the
     normal equations are singular (a pose constrained in fewer than 6 degrees of freedom).
     """
     count = len(poses)
@@ -500,6 +503,14 @@ def optimize_pose_graph(
     err, rij, tij, er = _errors(rot, trans, packed)
     chi2 = _chi2(err, packed.info)
     before = chi2
+    if max_iterations > 0 and free.any():
+        seeded = _chordal_rotations(rot, packed, free)
+        # only where the start's rotations are far off (drift): near the optimum the chordal
+        # estimate, which ignores the translations, would be the worse start
+        if seeded is not None and _rotation_chi2(seeded, packed) < _SEED_GAIN * _rotation_chi2(rot, packed):
+            rot = seeded
+            err, rij, tij, er = _errors(rot, trans, packed)
+            chi2 = _chi2(err, packed.info)
     damping = 0.0
     converged = not free.any()
     iteration = 0
@@ -539,6 +550,114 @@ def optimize_pose_graph(
         edge_translation_error=np.linalg.norm(err[:, :3], axis=1).tolist(),
         edge_rotation_error=np.linalg.norm(err[:, 3:], axis=1).tolist(),
     )
+
+
+_SEED_GAIN = 0.1  # seed the rotations when that cuts their share of χ² at least tenfold
+
+
+def _rotation_chi2(rot: NDArray, e: _Edges) -> float:
+    """The rotational share of χ², e_r^T Ω_rr e_r summed over the edges."""
+    er = so3_log(np.matmul(np.transpose(e.rz, (0, 2, 1)), np.matmul(np.transpose(rot[e.i], (0, 2, 1)), rot[e.j])))
+    return _chi2(er, e.info[:, 3:, 3:])
+
+
+def _chordal_rotations(rot: NDArray, e: _Edges, free: NDArray[np.bool_]) -> NDArray | None:
+    """Rotations that best satisfy R_j = R_i R_z alone in the Frobenius norm, projected onto SO(3).
+
+    Gauss-Newton from a drifted start (odometry chained over thousands of poses) spends most of
+    its iterations turning the rotations, which enter the errors nonlinearly; this relaxation of
+    the rotation constraints is linear and lands close to the optimum's rotations, after which the
+    translations are nearly linear too (a 10,000-pose graph: 3 iterations instead of 5). Each row
+    of R_j is that row of R_i times R_z, so the three rows share one 3x3-block system (weights: the
+    mean rotational information of each edge), factored once by CHOLMOD. None when the rotation
+    constraints alone leave some free rotation undetermined.
+    """
+    weight = np.trace(e.info[:, 3:, 3:], axis1=1, axis2=2) / 3.0
+    index = -np.ones(len(rot), dtype=np.int64)
+    index[free] = np.arange(int(free.sum()))
+    fi, fj = free[e.i], free[e.j]
+    size = 3 * int(free.sum())
+    block = np.arange(3)
+    # diagonal: w I at both free ends
+    node = np.bincount(np.concatenate([index[e.i[fi]], index[e.j[fj]]]), np.concatenate([weight[fi], weight[fj]]))
+    rows = [(3 * np.arange(len(node))[:, None] + block).ravel()]
+    cols = [rows[0]]
+    values = [np.repeat(node, 3)]
+    # off-diagonal, lower triangle: -w R_z^T at (j, i) when j > i, else its transpose -w R_z at (i, j)
+    both = np.flatnonzero(fi & fj)
+    low, high = np.minimum(index[e.i[both]], index[e.j[both]]), np.maximum(index[e.i[both]], index[e.j[both]])
+    coupling = -weight[both, None, None] * e.rz[both]
+    coupling = np.where(
+        (index[e.j[both]] > index[e.i[both]])[:, None, None], np.transpose(coupling, (0, 2, 1)), coupling
+    )
+    rows.append((3 * high[:, None, None] + block[:, None]).repeat(3, axis=2).ravel())
+    cols.append((3 * low[:, None, None] + block[None, :]).repeat(3, axis=1).ravel())
+    values.append(coupling.ravel())
+    # right-hand sides X_k = R_k^T (its columns are the rows of R_k), fixed ends moved over
+    rhs = np.zeros((size // 3, 3, 3))
+    to_j = np.flatnonzero(fj & ~fi)  # rhs_j += w R_z^T X_i
+    np.add.at(
+        rhs,
+        index[e.j[to_j]],
+        weight[to_j, None, None] * np.transpose(e.rz[to_j], (0, 2, 1)) @ rot[e.i[to_j]].transpose(0, 2, 1),
+    )
+    to_i = np.flatnonzero(fi & ~fj)  # rhs_i += w R_z X_j
+    np.add.at(rhs, index[e.i[to_i]], weight[to_i, None, None] * e.rz[to_i] @ rot[e.j[to_i]].transpose(0, 2, 1))
+    matrix = cvxopt.spmatrix(
+        cvxopt.matrix(np.concatenate(values)),
+        cvxopt.matrix(np.concatenate(rows)),
+        cvxopt.matrix(np.concatenate(cols)),
+        (size, size),
+    )
+    factor = cholmod.symbolic(matrix, uplo="L")
+    try:
+        cholmod.numeric(matrix, factor)
+    except ArithmeticError:
+        return None
+    solution = cvxopt.matrix(np.asfortranarray(rhs.reshape(size, 3)))
+    cholmod.solve(factor, solution)
+    rotations, proper = _nearest_rotations(
+        np.ascontiguousarray(np.asarray(solution).reshape(-1, 3, 3).transpose(0, 2, 1))
+    )
+    if not proper:
+        return None
+    seeded = rot.copy()
+    seeded[free] = rotations
+    return seeded
+
+
+@numba.njit(cache=True)
+def _nearest_rotations(m: NDArray[np.float64]) -> tuple[NDArray[np.float64], bool]:
+    """Orthogonal polar factors of a stack of 3x3 matrices; False when one is singular or a reflection.
+
+    Newton's iteration X <- (X + X^-T) / 2, with X^-T = cofactor(X) / det(X): converges
+    quadratically to the nearest rotation for a matrix of positive determinant, and on 10,000
+    matrices is far cheaper than a batched SVD.
+    """
+    out = np.empty_like(m)
+    x = np.empty((3, 3))
+    cof = np.empty((3, 3))
+    for n in range(len(m)):
+        x[:] = m[n]
+        for _ in range(50):
+            for c in range(3):  # column c of the cofactor matrix: cross product of the other two columns
+                a, b = (c + 1) % 3, (c + 2) % 3
+                cof[0, c] = x[1, a] * x[2, b] - x[2, a] * x[1, b]
+                cof[1, c] = x[2, a] * x[0, b] - x[0, a] * x[2, b]
+                cof[2, c] = x[0, a] * x[1, b] - x[1, a] * x[0, b]
+            det = x[0, 0] * cof[0, 0] + x[1, 0] * cof[1, 0] + x[2, 0] * cof[2, 0]
+            if not det > 1e-300:
+                return out, False
+            change = 0.0
+            for i in range(3):
+                for j in range(3):
+                    value = 0.5 * (x[i, j] + cof[i, j] / det)
+                    change = max(change, abs(value - x[i, j]))
+                    x[i, j] = value
+            if change < 1e-14:
+                break
+        out[n] = x
+    return out, True
 
 
 def _normal_blocks(

@@ -6,7 +6,15 @@ import numpy as np
 import pytest
 
 from slam6d.geometry import invert, make_pose
-from slam6d.posegraph import BlockSystem, PoseEdge, RelaxationError, optimize_pose_graph, so3_exp
+from slam6d.posegraph import (
+    BlockSystem,
+    PoseEdge,
+    RelaxationError,
+    _chordal_rotations,
+    _pack_edges,
+    optimize_pose_graph,
+    so3_exp,
+)
 
 
 def _random_system(
@@ -136,3 +144,54 @@ def test_optimum_of_a_loop_graph_matches_gtsam() -> None:
     for k in range(0, count, 97):
         np.testing.assert_allclose(ours.poses[k], result.atPose3(k).matrix(), atol=1e-4)
     np.testing.assert_array_equal(np.array(ours.poses)[:, 3], np.tile([0.0, 0.0, 0.0, 1.0], (count, 1)))
+
+
+def test_rotation_seed_is_exact_on_consistent_edges_and_skipped_near_the_optimum() -> None:
+    rng = np.random.default_rng(8)
+    count = 300
+    truth = [np.eye(4)]
+    for _ in range(count - 1):
+        truth.append(truth[-1] @ make_pose(so3_exp(rng.normal(0, 0.2, 3)), rng.normal(0, 1.0, 3)))
+    pairs = [(k, k + 1) for k in range(count - 1)] + [
+        tuple(sorted(rng.choice(count, 2, replace=False))) for _ in range(20)
+    ]
+    exact = [
+        PoseEdge(int(i), int(j), invert(truth[i]) @ truth[j], np.diag([1.0, 2.0, 3.0, 40.0, 50.0, 60.0]))
+        for i, j in pairs
+    ]
+    drifted = np.array([_noisy_rotation(p, rng) for p in truth])
+    drifted[0] = truth[0]
+    free = np.ones(count, dtype=bool)
+    free[0] = False
+    seeded = _chordal_rotations(drifted[:, :3, :3], _pack_edges(exact, count), free)
+    assert seeded is not None
+    np.testing.assert_allclose(seeded, np.array(truth)[:, :3, :3], atol=1e-9)
+
+    # re-relaxing a converged graph neither moves it nor costs more than the one confirming step
+    edges = _loop_graph(rng, 400, 20)
+    first = optimize_pose_graph(_chained(edges, 400), edges, fixed=[0])
+    again = optimize_pose_graph(first.poses, edges, fixed=[0])
+    assert again.iterations == 1
+    assert again.residual_after == pytest.approx(first.residual_after, rel=1e-9)
+
+
+def test_graph_whose_rotations_only_translations_fix_still_converges() -> None:
+    """Translation-only information: the rotation seed is undetermined and left out, Gauss-Newton still solves it."""
+    rng = np.random.default_rng(9)
+    positions = np.array([[0.0, 0.0, 0.0], [4.0, 0.0, 0.0], [0.0, 3.0, 0.0], [0.0, 0.0, 5.0]])
+    truth = [make_pose(so3_exp(rng.normal(0, 0.3, 3)), p) for p in positions]
+    translation_only = np.diag([1.0, 1.0, 1.0, 0.0, 0.0, 0.0])
+    edges = [
+        PoseEdge(i, j, invert(truth[i]) @ truth[j], translation_only) for i in range(4) for j in range(4) if i != j
+    ]
+    start = [truth[0]] + [p @ make_pose(so3_exp(rng.normal(0, 0.1, 3)), rng.normal(0, 0.2, 3)) for p in truth[1:]]
+    free = np.array([False, True, True, True])
+    assert _chordal_rotations(np.array(start)[:, :3, :3], _pack_edges(edges, 4), free) is None
+    result = optimize_pose_graph(start, edges, fixed=[0])
+    assert result.converged and result.residual_after < 1e-12
+    for got, want in zip(result.poses, truth, strict=True):
+        np.testing.assert_allclose(got, want, atol=1e-6)
+
+
+def _noisy_rotation(pose: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    return make_pose(pose[:3, :3] @ so3_exp(rng.normal(0, 0.3, 3)), pose[:3, 3])
