@@ -4,8 +4,9 @@ Each edge says "scan j sits at ``measurement`` in scan i's frame, with this 6x6 
 solver minimises ``sum e^T Ω e`` over all poses with Gauss-Newton (Levenberg damping only when a
 step would increase the error), building the Jacobians for every edge at once with numpy and
 solving the sparse normal equations with a sparse Cholesky (CHOLMOD) whose ordering and symbolic
-analysis are done once per graph, as the pattern never changes between iterations. That relaxes a
-10,000-pose graph in about half a second without a compiled graph library.
+analysis are done once per graph, as the pattern never changes between iterations, and with
+drifted rotations seeded by a linear chordal estimate first. That relaxes a 10,000-pose graph
+with 500 loops in well under half a second on two cores, without a compiled graph library.
 
 Error of an edge, with poses X = (R, t):
     e_t = R_i^T (t_j - t_i) - t_z          (translation, in scan i's frame)
@@ -331,12 +332,12 @@ class BlockSystem:
         # lower triangle only (CHOLMOD reads that half): block (a, b) lands at rows 6a+r, cols 6b+c
         # when a > b, transposed when a < b, and a diagonal block keeps its entries with r >= c
         block = np.arange(6)
-        upper = np.maximum(pairs_a, pairs_b)[:, None, None]
-        lower = np.minimum(pairs_a, pairs_b)[:, None, None]
+        high = np.maximum(pairs_a, pairs_b)[:, None, None]
+        low = np.minimum(pairs_a, pairs_b)[:, None, None]
         flip = (pairs_a < pairs_b)[:, None, None]
         r, c = block[:, None], block[None, :]
-        rows = (6 * upper + np.where(flip, c, r)).ravel()
-        cols = (6 * lower + np.where(flip, r, c)).ravel()
+        rows = (6 * high + np.where(flip, c, r)).ravel()
+        cols = (6 * low + np.where(flip, r, c)).ravel()
         self.size = 6 * len(self.key)
         self._keep = np.flatnonzero(rows >= cols)
         linear = cols[self._keep] * max(self.size, 1) + rows[self._keep]
@@ -579,7 +580,9 @@ def _chordal_rotations(rot: NDArray, e: _Edges, free: NDArray[np.bool_]) -> NDAr
     size = 3 * int(free.sum())
     block = np.arange(3)
     # diagonal: w I at both free ends
-    node = np.bincount(np.concatenate([index[e.i[fi]], index[e.j[fj]]]), np.concatenate([weight[fi], weight[fj]]))
+    node = np.bincount(
+        np.concatenate([index[e.i[fi]], index[e.j[fj]]]), np.concatenate([weight[fi], weight[fj]]), minlength=size // 3
+    )
     rows = [(3 * np.arange(len(node))[:, None] + block).ravel()]
     cols = [rows[0]]
     values = [np.repeat(node, 3)]
