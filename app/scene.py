@@ -21,6 +21,7 @@ from slam6d.octree import reduce_points
 
 DEFAULT_BUDGET = 1_500_000
 COARSE_BUDGET = 200_000  # the first, whole-map pass: about 0.5 s per frame for a software renderer
+PLAYBACK_BUDGET = 10_000  # the map around the current pair while stepping plays: frames must stay cheap
 FLOAT16_SAFE_EXTENT = 32.0  # metres: float16 spacing stays under 1.6 cm up to here
 
 _RAMP = np.array(  # perceptually ordered blue -> cyan -> green -> yellow -> red

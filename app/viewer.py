@@ -50,6 +50,8 @@ class SessionViewer:
         self.local: list[np.ndarray] = []  # display points per scan, scanner frame, float32
         self.poses: list[Matrix] = []
         self.nodes: list[Any] = []
+        self.light: dict[int, tuple[Any, np.ndarray]] = {}  # playback: scan -> (light node, its point indices)
+        self.focus: list[int] | None = None  # while stepping plays: the scans drawn in full
         self.residuals: list[np.ndarray] | None = None
         self.highlight: dict[int, tuple[int, int, int]] = {}
         self.selected: dict[int, tuple[int, int, int]] = {}  # scans picked for editing; drawn over highlight
@@ -259,7 +261,9 @@ class SessionViewer:
             if replace:
                 for node in self.nodes:
                     node.remove()
-            self.nodes = []
+            for node, _ in self.light.values():
+                node.remove()
+            self.nodes, self.light = [], {}
             for k, points in enumerate(self.local):
                 pose = self.poses[k]
                 self.nodes.append(
@@ -271,8 +275,60 @@ class SessionViewer:
                         precision=scene.precision_for(points),  # type: ignore[arg-type]
                         position=pose[:3, 3],
                         wxyz=rotation_to_quaternion(pose[:3, :3]),
+                        visible=self.focus is None or k in self.focus,
                     )
                 )
+            if self.focus is not None:
+                self._show_focus(self.focus)
+
+    def begin_playback(self, focus: list[int]) -> None:
+        """Stepping plays: draw ``focus`` (the current pair) in full and the rest of the map light.
+
+        Without a GPU a frame costs about a microsecond or two per point, so with the whole budget
+        on screen a browser draws one pose in seconds and falls behind the stepping; with the light
+        map it keeps up. The light points are a subset of the displayed ones, sent once as nodes of
+        their own next to the full ones: switching is a visibility change, nothing is re-sent.
+        """
+        self._show_focus(focus)
+
+    def end_playback(self) -> None:
+        """Back to the whole map at the full budget (the full nodes were kept, hidden)."""
+        with self.lock, self.server.atomic():
+            self.focus = None
+            for k, node in enumerate(self.nodes):
+                node.visible = True
+                if k in self.light:
+                    self.light[k][0].visible = False
+
+    def _show_focus(self, focus: list[int]) -> None:
+        with self.lock, self.server.atomic():
+            self.focus = list(focus)
+            share = max(1, scene.PLAYBACK_BUDGET // max(1, len(self.nodes)))
+            for k, node in enumerate(self.nodes):
+                full = k in self.focus
+                node.visible = full
+                if not full and k not in self.light:
+                    keep = scene.display_indices(self.local[k], 0.0, share)
+                    pose = self.poses[k]
+                    light = self.server.scene.add_point_cloud(
+                        f"/light/{k}",
+                        points=self.local[k][keep],
+                        colors=self._light_colours(self._colours(k), keep),
+                        point_size=float(self.point_size.value),
+                        precision=scene.precision_for(self.local[k]),  # type: ignore[arg-type]
+                        position=pose[:3, 3],
+                        wxyz=rotation_to_quaternion(pose[:3, :3]),
+                    )
+                    self.light[k] = (light, keep)
+                if k in self.light:
+                    if not full:
+                        self._place(self.light[k][0], self.poses[k])
+                    self.light[k][0].visible = not full
+
+    @staticmethod
+    def _light_colours(colours: np.ndarray | tuple[int, int, int], keep: np.ndarray) -> np.ndarray:
+        array = np.asarray(colours, np.uint8)
+        return array[keep] if array.ndim == 2 else array
 
     def _colours(self, k: int) -> np.ndarray | tuple[int, int, int]:
         if k in self.selected:
@@ -301,7 +357,11 @@ class SessionViewer:
 
     def paint(self, k: int) -> None:
         """Send scan ``k``'s colours; a single colour goes as one RGB triple, not one per point."""
-        self.nodes[k].colors = np.asarray(self._colours(k), np.uint8)
+        colours = np.asarray(self._colours(k), np.uint8)
+        self.nodes[k].colors = colours
+        if k in self.light:
+            node, keep = self.light[k]
+            node.colors = self._light_colours(colours, keep)
 
     def pick(self, ray_origin: Any, ray_direction: Any) -> int | None:
         """The scan under a click: tested on the displayed points at the poses shown."""
@@ -318,7 +378,7 @@ class SessionViewer:
                     self.paint(k)
 
     def _set_point_size(self) -> None:
-        for node in self.nodes:
+        for node in [*self.nodes, *(light for light, _ in self.light.values())]:
             node.point_size = float(self.point_size.value)
 
     def set_poses(self, poses: list[Matrix], indices: list[int] | None = None) -> None:
@@ -333,13 +393,19 @@ class SessionViewer:
                 if k >= len(self.nodes) or np.array_equal(pose, self.poses[k]):
                     continue
                 self.poses[k] = pose.copy()
-                self.nodes[k].position = pose[:3, 3]
-                self.nodes[k].wxyz = rotation_to_quaternion(pose[:3, :3])
+                self._place(self.nodes[k], pose)
+                if k in self.light and self.focus is not None and k not in self.focus:
+                    self._place(self.light[k][0], pose)  # a hidden light node is placed when shown
                 moved = True
             self.pose_updates += 1
             if moved:
                 self.residuals = None
                 self.pose_version += 1
+
+    @staticmethod
+    def _place(node: Any, pose: Matrix) -> None:
+        node.position = pose[:3, 3]
+        node.wxyz = rotation_to_quaternion(pose[:3, :3])
 
     def _draw_graph(self) -> None:
         """Trajectory (sequential edges) and loop edges, each coloured by its residual RMS.
@@ -563,6 +629,7 @@ class Stepper:
         self._playing.set()
         self.viewer.play_button.disabled = True
         self.viewer.pause_button.disabled = False
+        self.viewer.begin_playback(self._focus())
 
         def loop() -> None:
             try:
@@ -578,9 +645,19 @@ class Stepper:
         threading.Thread(target=loop, name="stepper", daemon=True).start()
 
     def pause(self) -> None:
+        was_playing = self._playing.is_set()
         self._playing.clear()
         self.viewer.play_button.disabled = False
         self.viewer.pause_button.disabled = True
+        if was_playing:
+            self.viewer.end_playback()
+
+    def _focus(self) -> list[int]:
+        """The current pair: the scan being matched and the model scan nearest it in the sequence."""
+        if self.current is None:
+            return []
+        nearest = min(self.model, key=lambda m: abs(m - self.current), default=None)  # type: ignore[operator]
+        return [self.current] if nearest is None else [self.current, nearest]
 
     def _show(self, event: Any) -> None:
         viewer = self.viewer
@@ -639,6 +716,8 @@ class Stepper:
         for k in changed:
             if k is not None and k < len(viewer.nodes):
                 viewer.paint(k)
+        if self._playing.is_set():
+            viewer.begin_playback(self._focus())
 
     def _draw_correspondences(self, index: int, max_distance: float) -> None:
         """Closest-point pairs between the current scan and its model, from the displayed points (capped)."""

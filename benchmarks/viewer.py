@@ -30,9 +30,12 @@ of the coarse pass (every scan received and drawn); full budget drawn = until th
 drew every point of the full pass. A single-pass view (a budget at or under the coarse one) gives
 the same time for both. A screenshot afterwards checks the canvas shows the map.
 Pose updates: a thread moves one scan at ``--rate`` per second for ``--seconds`` through
-``SessionViewer.set_poses`` (what the stepper calls); reported are the updates that arrived in
-the page per second, and the frames per second that drew a newly arrived pose (updates arriving
-while a frame renders are drawn together by the next one: the viewer shows the latest pose).
+``SessionViewer.set_poses`` (what the stepper calls), between ``begin_playback`` with that scan and
+its predecessor as the current pair and ``end_playback``, as the stepper's Play and Pause do
+(``--no-playback`` streams over the whole map at the full budget instead, as single steps are shown);
+reported are the updates that arrived in the page per second, and the frames per second that drew
+a newly arrived pose (updates arriving while a frame renders are drawn together by the next one:
+the viewer shows the latest pose).
 """
 
 from __future__ import annotations
@@ -132,6 +135,7 @@ def simulated_scans(cache: Path, scans: int, shots: int, seed: int) -> tuple[Pat
 def stream_poses(viewer: Any, index: int, rate: float, seconds: float) -> tuple[int, float]:
     """Move one scan as the stepper does; returns (updates sent, mean server-side cost per update in s)."""
     base = viewer.poses[index].copy()
+    assert viewer.focus is None or index in viewer.focus
     count, busy = 0, 0.0
     start = time.perf_counter()
     while (now := time.perf_counter()) - start < seconds:
@@ -188,15 +192,20 @@ def first_full_map(page: Any, server: LiveServer, url: str) -> dict[str, Any]:
     return marks
 
 
-def pose_update_rates(frame: Any, viewer: Any, rate: float, seconds: float) -> dict[str, Any]:
+def pose_update_rates(frame: Any, viewer: Any, rate: float, seconds: float, playback: bool) -> dict[str, Any]:
     """Stream poses of one scan; what arrived in the page and what was drawn, per second."""
     index = len(viewer.nodes) // 2
     frame.evaluate(f"window.__bench.poseName = {viewer.nodes[index].name!r}")
+    if playback:
+        viewer.begin_playback([index, index - 1])
     time.sleep(1.5)  # let the view settle
     frame.evaluate("window.__bench.frames = []; window.__bench.batches = []")
     sent, cost = stream_poses(viewer, index, rate, seconds)
     time.sleep(1.0)
     bench = frame.evaluate("window.__bench")
+    points = [f[1] for f in bench["frames"]]
+    if playback:
+        viewer.end_playback()
     arrived = sum(b[2] for b in bench["batches"])
     drawn = [f for f in bench["frames"] if f[2]]
     frame_ms = [f[3] for f in bench["frames"]]
@@ -208,6 +217,7 @@ def pose_update_rates(frame: Any, viewer: Any, rate: float, seconds: float) -> d
         "arrived_per_s": arrived / seconds,
         "drawn_per_s": len(drawn) / seconds,
         "frame_ms": float(np.median(frame_ms)) if frame_ms else float("nan"),
+        "frame_points": int(np.median(points)) if points else 0,
     }
 
 
@@ -219,6 +229,9 @@ def main() -> None:
     parser.add_argument("--budget", type=int, default=None, help="display point budget (default: the viewer's)")
     parser.add_argument("--rate", type=float, default=30.0, help="pose updates sent per second")
     parser.add_argument("--seconds", type=float, default=5.0, help="how long poses are streamed")
+    parser.add_argument(
+        "--no-playback", dest="playback", action="store_false", help="stream poses over the full map, not in Play mode"
+    )
     parser.add_argument("--cache", type=Path, default=Path(tempfile.gettempdir()) / "slam6d-viewer-benchmark")
     parser.add_argument("--screenshot", type=Path, default=None, help="save the first full map as PNG")
     args = parser.parse_args()
@@ -267,12 +280,12 @@ def main() -> None:
             if args.screenshot:
                 page.screenshot(path=str(args.screenshot))
             load = load_average()
-            poses = pose_update_rates(first["frame"], first["viewer"], args.rate, args.seconds)
+            poses = pose_update_rates(first["frame"], first["viewer"], args.rate, args.seconds, args.playback)
             print(
                 f"pose updates: {poses['sent_per_s']:.1f}/s sent ({poses['server_ms']:.2f} ms each on the server), "
                 f"{poses['arrived_per_s']:.1f}/s arrived in the page ({poses['arrived']} of {poses['sent']}), "
-                f"{poses['drawn_per_s']:.1f} frames/s drew a new pose (median frame {poses['frame_ms']:.0f} ms; "
-                f"load {load})"
+                f"{poses['drawn_per_s']:.1f} frames/s drew a new pose (median frame {poses['frame_ms']:.0f} ms, "
+                f"{poses['frame_points']:,} points; {'playing' if args.playback else 'full map'}; load {load})"
             )
             context.close()
         if not reopened and (root / SESSION_ID / CACHE_DIR / "display.npz").exists():

@@ -221,3 +221,47 @@ def test_clicking_scans_in_the_view_picks_a_then_b_and_highlights_them(corridor_
     assert 0 in painted and 2 in painted
     edit._clicked(_Click(camera, (0.0, -1.0, 0.5)))  # away from the map: nothing picked, nothing changed
     assert (int(edit.scan_a.value), int(edit.scan_b.value)) == (2, 0) and "No scan" in edit.pick_status.content
+
+
+def test_playing_draws_the_current_pair_in_full_and_the_rest_light_without_resending(corridor_view, monkeypatch):
+    view = corridor_view
+    monkeypatch.setattr(scene, "PLAYBACK_BUDGET", 900)
+    full = [len(p) for p in view.local]
+    view.begin_playback([2, 1])
+    assert [n.visible for n in view.nodes] == [False, True, True]
+    assert set(view.light) == {0} and view.light[0][0].visible
+    light_points = len(view.light[0][0].points)
+    assert 0 < light_points <= 900 // 3 < full[0]
+    # moving the current scan sends its pose to its full node only; the light node is not re-sent
+    sent = view.light[0][0]
+    moved = [p.copy() for p in view.poses]
+    moved[2] = moved[2] @ pose_from_xyzrpy(0.1, 0, 0, 0, 0, 0.02)
+    view.set_poses(moved, [2])
+    np.testing.assert_allclose(view.nodes[2].position, moved[2][:3, 3])
+    # the pair moves on: scan 1 becomes light, scan 0 full again; existing light nodes are reused
+    view.begin_playback([0])
+    assert [n.visible for n in view.nodes] == [True, False, False]
+    assert view.light[0][0] is sent and not sent.visible and view.light[2][0].visible
+    np.testing.assert_allclose(view.light[2][0].position, moved[2][:3, 3])  # shown where the scan now is
+    view.end_playback()
+    assert view.focus is None and all(n.visible for n in view.nodes)
+    assert not any(node.visible for node, _ in view.light.values())
+    assert [len(n.points) for n in view.nodes] == full  # the whole budget is back, never re-sent
+
+
+def test_stepper_play_enters_playback_and_pause_leaves_it(corridor_view):
+    import time
+
+    view = corridor_view
+    stepper = view._stepper("ana")
+    stepper.play(rate=5.0)
+    deadline = time.monotonic() + 60
+    while stepper.current is None and not stepper.finished:
+        assert time.monotonic() < deadline, "stepping did not start"
+        time.sleep(0.05)
+    stepper.pause()
+    assert view.focus is None and all(n.visible for n in view.nodes)
+    stepper.play(rate=5.0)
+    assert view.focus == stepper._focus() and stepper.current in view.focus
+    stepper.pause()
+    assert view.focus is None
