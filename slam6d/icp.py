@@ -373,7 +373,9 @@ class ModelIndex:
     line and sparsely across lines, so the k nearest raw points mostly lie on one line and give no
     plane, while on the reduced sample they spread across lines. Matching against the same sample
     costs nothing in accuracy (the plane, not the sample point, carries the residual) and is about
-    30 % faster on the BALM pair. ``normal_voxel_size`` 0 uses the raw points.
+    30 % faster on the BALM pair. ``normal_voxel_size`` 0 uses the raw points. ``normal_cell`` > 0
+    takes the normals from the cubes of that size instead (:func:`cell_normals` over all the model's
+    points), so the sample only decides which points are paired.
 
     Everything is built on first use and cached: point-to-point never pays for normals, and normals
     are estimated only for sample points that actually get paired. One index may serve registrations
@@ -446,17 +448,18 @@ class ModelIndex:
         with self._lock:
             if self._plane_index is not None:
                 return
-            if self.normal_voxel_size > 0 and self.normal_cell <= 0:
+            if self.normal_voxel_size > 0:
                 indices = reduce_points(self.points, self.normal_voxel_size)
             else:
                 indices = np.arange(len(self.points), dtype=np.int64)
             self._normals = np.zeros((len(indices), 3))
             self._normal_state = np.zeros(len(indices), dtype=np.int8)
             if self.normal_cell > 0:
-                # all cube normals at once (cheaper than any k-NN estimate); where a cube gives none
-                # (too few points, an edge) the k-NN estimate is made on demand as usual
-                self._normals, usable = cell_normals(self.points, self.normal_cell)
-                self._normal_state = usable.astype(np.int8)
+                # all cube normals at once (cheaper than any k-NN estimate), from all the model's points;
+                # where a cube gives none (too few points, an edge) the k-NN estimate is made on demand
+                normals, usable = cell_normals(self.points, self.normal_cell)
+                self._normals = normals[indices]
+                self._normal_state = usable[indices].astype(np.int8)
             self._plane_indices = indices
             self._plane_index = (
                 self.index
