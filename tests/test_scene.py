@@ -37,8 +37,12 @@ def test_cached_budget_selection_reuses_only_for_the_same_scans(tmp_path, monkey
     rng = np.random.default_rng(2)
     clouds = [rng.uniform(-10, 10, (20_000, 3)) for _ in range(3)]
     cache = tmp_path / "cache" / "display.npz"
+    assert scene.remembered_selection(cache, clouds, budget=9_000, voxel_size=0.05) is None
     first = scene.cached_budget_selection(cache, clouds, budget=9_000, voxel_size=0.05)
     assert cache.exists()
+    remembered = scene.remembered_selection(cache, clouds, budget=9_000, voxel_size=0.05)
+    assert remembered is not None and all(np.array_equal(a, b) for a, b in zip(first, remembered, strict=True))
+    assert scene.remembered_selection(cache, clouds, budget=8_000, voxel_size=0.05) is None
     expected = scene.budget_selection(clouds, budget=9_000, voxel_size=0.05)
     assert all(np.array_equal(a, b) for a, b in zip(first, expected, strict=True))
 
@@ -265,3 +269,21 @@ def test_stepper_play_enters_playback_and_pause_leaves_it(corridor_view):
     assert view.focus == stepper._focus() and stepper.current in view.focus
     stepper.pause()
     assert view.focus is None
+
+
+def test_a_reopened_view_sends_the_remembered_full_map_in_one_pass(tmp_path, monkeypatch):
+    from app.server import create_app
+    from tests.session_fixtures import corridor_session
+
+    monkeypatch.setattr(scene, "COARSE_BUDGET", 10_000)  # the 60k-point corridor counts as large
+    corridor_session(tmp_path / "sessions", scans=3, points=20_000)
+    shown = []
+    for _ in range(2):
+        app = create_app(tmp_path / "sessions")
+        view = app.state.viewers.get("corridor")
+        assert view.ready.wait(30) and view.error is None
+        shown.append((view.coarse_points, [len(p) for p in view.local]))
+        app.state.viewers.stop_all()
+    (first_coarse, first_full), (again_coarse, again_full) = shown
+    assert first_coarse > 0  # first open: a coarse look first, while the voxel selection is computed
+    assert again_coarse == 0 and again_full == first_full  # reopened: straight to the same full map
