@@ -99,13 +99,13 @@ class PipelineConfig:
     loop verification and relaxation keep, and which fill in where a cube gives none); 0 uses k-NN
     normals there too. With per-cube normals, data points are paired with the model reduced further,
     to one point per cube of ``sample_voxels`` x ``voxel_size`` (0 = every model point): the plane,
-    not the sample point, carries a point-to-plane residual, and the normals still come from all the
-    model's points, so the smaller tree searched every iteration costs no accuracy (ATE before
-    relaxation on the benchmark loop 0.40 instead of 0.48 cm, 0.33 instead of 0.26 cm on the same
-    loop simulated with seed 1) and ~10 % of the registration time. ``metascan_scans`` is how many recent scans the metascan holds; each is
-    searched with its own kd-tree, so the cost of a match grows with it (on the benchmark loop 3
-    scans instead of 1 cost 2.5x the registration time for the same ATE after relaxation, 0.33 vs
-    0.35 cm). ``registration_epsilon`` is the convergence tolerance of sequential matching (at least
+    not the sample point, carries a point-to-plane residual and the normals still come from all the
+    model's points, so the smaller tree searched every iteration saves ~10 % of the registration time
+    while the ATE before relaxation stays within its usual scatter (benchmark loop 0.40 instead of
+    0.48 cm; the same loop simulated with seed 1, 0.33 instead of 0.26 cm). ``metascan_scans`` is
+    how many recent scans the metascan holds; each is searched with its own kd-tree, so the cost of a
+    match grows with it (on the benchmark loop 3 scans instead of 1 cost 2.5x the registration time
+    for the same ATE after relaxation, 0.33 vs 0.35 cm). ``registration_epsilon`` is the convergence tolerance of sequential matching (at least
     the ICP ``epsilon``): loop closing and relaxation refine every pose afterwards, so iterating
     below half a millimetre there buys nothing.
     ``max_range`` (the laser's reach) bounds loop hypotheses; None estimates it from the scans.
