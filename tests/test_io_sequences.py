@@ -156,3 +156,26 @@ def test_map_writer_round_trip(tmp_path: Path, suffix: str) -> None:
 def test_map_writer_refuses_unknown_suffix(tmp_path: Path) -> None:
     with pytest.raises(FormatError, match=r"map\.obj"):
         write_map(tmp_path / "map.obj", np.zeros((3, 3)))
+
+
+def test_uos_folder_read_on_threads_keeps_order_progress_and_the_first_bad_file(tmp_path: Path, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """uos scans are parsed on several threads; scans, progress and errors come in file order as on one."""
+    from slam6d.io import registry
+    from slam6d.io.uos import write_uos_scan
+
+    for k in range(12):
+        write_uos_scan(tmp_path, k, RNG.uniform(-500, 500, (300 + k, 3)), make_pose(np.eye(3), [k, 0.0, 0.0]))
+    seen: list[tuple[int, int]] = []
+    threaded = read_sequence(tmp_path, "uos", progress=lambda done, total: seen.append((done, total)))
+    monkeypatch.setattr(registry, "READ_THREADS", 1)
+    alone = read_sequence(tmp_path, "uos")
+    assert seen == [(k + 1, 12) for k in range(12)]
+    assert [s.name for s in threaded] == [f"scan{k:03d}" for k in range(12)]
+    for a, b in zip(threaded, alone, strict=True):
+        np.testing.assert_array_equal(a.points, b.points)
+        np.testing.assert_array_equal(a.pose, b.pose)
+    monkeypatch.setattr(registry, "READ_THREADS", 2)
+    (tmp_path / "scan005.3d").write_text("1 2 3\n4 five 6\n")
+    (tmp_path / "scan009.3d").write_text("1 2\n")
+    with pytest.raises(FormatError, match=r"scan005\.3d:2: .five. is not a number"):
+        read_sequence(tmp_path, "uos")

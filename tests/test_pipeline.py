@@ -52,6 +52,23 @@ def test_full_run_beats_odometry_and_closes_the_loop(small_loop) -> None:  # typ
     assert pipeline.done
 
 
+def test_work_done_ahead_on_a_second_thread_changes_no_pose(small_loop, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """Reduction and model preparation run beside ICP; the result must be the one-thread result, bit for bit."""
+    import slam6d.pipeline
+
+    config = PipelineConfig(relaxation="none")
+    monkeypatch.setattr(slam6d.pipeline, "WORKER_THREADS", 1)
+    alone = Pipeline(_fresh(small_loop), config)
+    alone.run()
+    monkeypatch.setattr(slam6d.pipeline, "WORKER_THREADS", 2)
+    beside = Pipeline(_fresh(small_loop), config)
+    assert beside._worker is not None
+    beside.run()
+    assert beside._worker is None  # stopped once registration no longer needs it
+    np.testing.assert_array_equal(np.stack(beside.poses), np.stack(alone.poses))
+    assert beside.loops_closed == alone.loops_closed
+
+
 def test_step_yields_one_icp_iteration_at_a_time_and_matches_run(small_loop) -> None:  # type: ignore[no-untyped-def]
     config = PipelineConfig(loops=False, relaxation="none")
     stepped = Pipeline(_fresh(small_loop), config)
