@@ -50,6 +50,8 @@ def test_full_run_beats_odometry_and_closes_the_loop(small_loop) -> None:  # typ
     assert report.chi2_after is not None and report.chi2_before is not None and report.chi2_after <= report.chi2_before
     assert set(report.stage_seconds) >= {"registration", "loops", "relaxation"}
     assert pipeline.done
+    # LUM paired against the registration's models (sample and normals built once), not new ones
+    assert all(pipeline.models.plane_model(k) is pipeline.registration_model(k) for k in range(8))
 
 
 def test_work_done_ahead_on_a_second_thread_changes_no_pose(small_loop, monkeypatch) -> None:  # type: ignore[no-untyped-def]
