@@ -261,22 +261,28 @@ def _place(points, source, relative):  # type: ignore[no-untyped-def]
 
 
 @numba.njit(cache=True, nogil=True)
-def _pair_blocks(q, p, m, normals, relative, source, pairs, robust_scale):  # type: ignore[no-untyped-def]
+def _pair_blocks(q, p, found, matched, model, normals, usable, relative, source, pairs, robust_scale):  # type: ignore[no-untyped-def]
     """Per pair: J^T W J (12x12, order i then j), J^T W r, the sums of r² and of w r², and the point count.
 
-    Accumulated point by point: the (n, 12) Jacobian and the per-pair products built with numpy
-    cost more than the closest-point query of the round.
+    Point ``found[t]`` (placed ``q``, own frame ``p``) is paired with model point ``matched[found[t]]``
+    whose normal is ``normals[t]``, skipped unless ``usable[t]``. Accumulated point by point (and
+    gathered here): the (n, 12) Jacobian and the per-pair products built with numpy cost more than
+    the closest-point query of the round.
     """
     blocks = np.zeros((pairs, 12, 12))
     gradients = np.zeros((pairs, 12))
     sums = np.zeros((pairs, 3))  # r², w r², count
     jac = np.empty(12)
-    for n in range(q.shape[0]):
+    for t in range(found.shape[0]):
+        if not usable[t]:
+            continue
+        n = found[t]
+        k = matched[n]
         s = source[n]
-        nx, ny, nz = normals[n, 0], normals[n, 1], normals[n, 2]
+        nx, ny, nz = normals[t, 0], normals[t, 1], normals[t, 2]
         qx, qy, qz = q[n, 0], q[n, 1], q[n, 2]
         px, py, pz = p[n, 0], p[n, 1], p[n, 2]
-        r = (qx - m[n, 0]) * nx + (qy - m[n, 1]) * ny + (qz - m[n, 2]) * nz
+        r = (qx - model[k, 0]) * nx + (qy - model[k, 1]) * ny + (qz - model[k, 2]) * nz
         rel = relative[s]
         # R_ij^T n
         ax = rel[0, 0] * nx + rel[1, 0] * ny + rel[2, 0] * nz
@@ -328,12 +334,14 @@ def neighbour_pairs(
 
     Only pairs whose scanned regions can touch (distance below the sum of their 95th-percentile
     ranges) are counted, on an evenly thinned copy of the data scan scaled back up; that turns an
-    O(n²) sweep of full queries into one cheap query per scan.
+    O(n²) sweep of full queries into one cheap query per scan. A quarter of ``sample`` is tried
+    first: a pair where a third of it finds partners is far above any useful ``min_pairs`` and
+    keeps that estimate; only the others are counted on the full ``sample``.
     """
     chosen = sorted(set(range(len(models))) if members is None else set(members))
     extents = {k: models.extent(k) for k in chosen}
     found = []
-    d = models.config.max_distance
+    first = max(1, sample // 4)
     for a_pos, i in enumerate(chosen):
         near = [
             j
@@ -342,15 +350,25 @@ def neighbour_pairs(
         ]
         if not near:
             continue
-        placed, _, source, _ = _placed_in(models, poses, i, near, sample)
-        _, idx = models.index(i).nearest(placed, d)
-        hits = np.bincount(source[idx >= 0], minlength=len(near))
-        sizes = np.bincount(source, minlength=len(near))
+        hits, sizes = _hits(models, poses, i, near, first)
+        sure = hits * 3 >= sizes
+        unsure = [j for j, s in zip(near, sure, strict=True) if not s]
+        if unsure:
+            hits[~sure], sizes[~sure] = _hits(models, poses, i, unsure, sample)
         for j, hit, size in zip(near, hits, sizes, strict=True):
             count = int(hit * len(models.points[j]) / size)
             if count > min_pairs:
                 found.append(NeighbourPair(i, j, count))
     return found
+
+
+def _hits(
+    models: ScanModels, poses: Sequence[Matrix], i: int, others: Sequence[int], sample: int
+) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """Per scan of ``others``: how many of its ``sample`` thinned points have a partner in scan i, of how many."""
+    placed, _, source, _ = _placed_in(models, poses, i, others, sample)
+    _, idx = models.index(i).nearest(placed, models.config.max_distance)
+    return np.bincount(source[idx >= 0], minlength=len(others)), np.bincount(source, minlength=len(others))
 
 
 def pair_residual(
@@ -595,14 +613,16 @@ def _scan_system(models: ScanModels, current: Sequence[Matrix], batch: _ScanBatc
     found = np.flatnonzero(idx >= 0)
     hit_distance = dist[found]
     normals, usable = model.plane_normals_for(idx[found])  # estimated once, where pairs first need them
-    found, normals = found[usable], normals[usable]
     blocks, gradients, sums = _pair_blocks(
-        q[found],
-        batch.points[found],
-        model.plane_index.points[idx[found]],
+        q,
+        batch.points,
+        found,
+        idx,
+        model.plane_index.points,
         normals,
+        usable,
         relative,
-        batch.source[found],
+        batch.source,
         len(batch.others),
         float(robust_scale),
     )
