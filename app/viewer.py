@@ -186,24 +186,21 @@ class SessionViewer:
     def _rebuild_scans(self) -> None:
         """(Re)send every scan at the current budget: the only time point data goes over the wire.
 
-        One pass when the full selection is at hand (remembered from an earlier open, or the
-        budget at or under :data:`scene.COARSE_BUDGET`): the whole map at the full budget, in one
-        frame. Otherwise two: first every scan at a coarse level, so the whole map is on screen
-        after one cheap frame (without a GPU a frame costs ~2 µs per point) while the voxel
-        selection is computed, then every scan at the full budget, replacing the coarse points.
+        Two passes when the budget is above :data:`scene.COARSE_BUDGET`: first every scan at a
+        coarse level, so the whole map is on screen after one cheap frame (without a GPU a frame
+        costs ~2 µs per point), then every scan at the full budget, replacing the coarse points.
         Each pass is one atomic batch, so a browser draws the map once per pass, complete,
-        rather than redrawing a growing map after each scan.
+        rather than redrawing a growing map after each scan. (Sending a remembered full selection
+        in one pass was tried: its larger message reaches a busy browser seconds later than the
+        coarse one, and the full frame came no sooner.)
         """
         sequence = self.state.sequence()
         clouds = [s.points for s in sequence.scans]
         names = [s.name for s in sequence.scans]
         budget = int(self.budget.value)
         voxel = float(self.state.session.config.engine.get("display_voxel_size", 0.05))
-        cache = self.state.session.folder / CACHE_DIR / "display.npz"
-        selection = scene.remembered_selection(cache, clouds, budget, voxel)
         self.coarse_points, coarse_sent = 0, 0.0
-        big = budget > scene.COARSE_BUDGET and sum(len(c) for c in clouds) > scene.COARSE_BUDGET
-        if selection is None and big:
+        if budget > scene.COARSE_BUDGET and sum(len(c) for c in clouds) > scene.COARSE_BUDGET:
             self._show_selection(sequence, scene.coarse_selection(clouds), names, replace=True)
             coarse_sent = time.monotonic()
             self.coarse_points = sum(len(p) for p in self.local)
@@ -212,8 +209,9 @@ class SessionViewer:
                 f"({self.coarse_points:,} points), loading full detail…"
             )
             self._draw_graph()
-        if selection is None:
-            selection = scene.cached_budget_selection(cache, clouds, budget, voxel)
+        selection = scene.cached_budget_selection(
+            self.state.session.folder / CACHE_DIR / "display.npz", clouds, budget, voxel
+        )
         if self.coarse_points:
             self._let_browsers_draw_coarse(coarse_sent)
         self._show_selection(sequence, selection, names, replace=not self.coarse_points)

@@ -271,19 +271,23 @@ def test_stepper_play_enters_playback_and_pause_leaves_it(corridor_view):
     assert view.focus is None
 
 
-def test_a_reopened_view_sends_the_remembered_full_map_in_one_pass(tmp_path, monkeypatch):
+def _never_recomputed(*args, **kwargs):  # type: ignore[no-untyped-def]
+    raise AssertionError("the display selection was recomputed")
+
+
+def test_a_reopened_view_reuses_the_display_selection_of_the_first_open(tmp_path, monkeypatch):
+    """The first open reads the scan files (float64), later ones the parsed cache (float32): same key."""
     from app.server import create_app
     from tests.session_fixtures import corridor_session
 
-    monkeypatch.setattr(scene, "COARSE_BUDGET", 10_000)  # the 60k-point corridor counts as large
     corridor_session(tmp_path / "sessions", scans=3, points=20_000)
     shown = []
-    for _ in range(2):
+    for attempt in range(2):
+        if attempt:
+            monkeypatch.setattr(scene, "budget_selection", _never_recomputed)
         app = create_app(tmp_path / "sessions")
         view = app.state.viewers.get("corridor")
         assert view.ready.wait(30) and view.error is None
-        shown.append((view.coarse_points, [len(p) for p in view.local]))
+        shown.append([p.copy() for p in view.local])
         app.state.viewers.stop_all()
-    (first_coarse, first_full), (again_coarse, again_full) = shown
-    assert first_coarse > 0  # first open: a coarse look first, while the voxel selection is computed
-    assert again_coarse == 0 and again_full == first_full  # reopened: straight to the same full map
+    assert all(np.array_equal(a, b) for a, b in zip(*shown, strict=True))
