@@ -15,15 +15,18 @@ Two methods, both over the same neighbour graph (scans whose reduced clouds shar
   with the graph, not with a fixed total), shared among all pairs (the long-range ones that make a
   map globally consistent included) in proportion to their overlap. Each scan's
   plane-sample tree (built once) is queried once per round by the points of all its neighbours
-  at once, the Jacobians are built for all pairs of a scan together, and the joint system goes to
-  :class:`slam6d.posegraph.BlockSystem`: on BALM hall (89 scans, 3916 overlapping pairs) a round
-  costs about a second instead of nine. Rounds stop once a round at the final robust scale
-  changes the Cauchy-weighted cost by less than ``chi2_tolerance`` (re-pairing keeps scans
-  jittering below a millimetre, so the movement alone may never fall under ``tolerance``).
+  at once (against the registration's model when one was handed over,
+  :meth:`ScanModels.share_plane_model`), the normal blocks of all pairs of a scan are summed in one
+  compiled pass, and the joint system goes to :class:`slam6d.posegraph.BlockSystem`. Rounds stop
+  once a round at the final robust scale moves no scan by more than ``settle_fraction`` of that
+  scale, or changes the Cauchy-weighted cost by less than ``chi2_tolerance`` (re-pairing keeps
+  scans jittering below a millimetre, so the movement alone may never fall under ``tolerance``).
   :func:`lum` relaxes a graph of relative-pose edges (:mod:`slam6d.posegraph`).
 
-Residuals are reported before and after as the RMS closest-point distance over all neighbour
-pairs (the quantity both methods reduce). A scan that does not overlap any other relaxed scan
+Residuals are reported before and after as the RMS closest-point distance of sampled data points
+within the ICP max distance of their neighbour scan (the quantity both methods reduce): simultaneous
+matching samples every neighbour pair evenly (:func:`pair_residual`); LUM takes them from its
+rounds' own queries (see :func:`lum_relaxation`), so reporting costs it no extra pass. A scan that does not overlap any other relaxed scan
 makes the problem ill-posed; that raises :class:`RelaxationError` with the scans named. Scans left
 out of the relaxation follow their predecessor rigidly, keeping the trajectory continuous.
 """
