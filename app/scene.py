@@ -24,6 +24,7 @@ from slam6d.octree import reduce_points
 DEFAULT_BUDGET = 750_000
 COARSE_BUDGET = 200_000  # the first, whole-map pass: about 0.5 s per frame for a software renderer
 PLAYBACK_BUDGET = 10_000  # the map around the current pair while stepping plays: frames must stay cheap
+EDGE_SHADES = 10  # steps of the edge residual scale
 FLOAT16_SAFE_EXTENT = 32.0  # metres: float16 spacing stays under 1.6 cm up to here
 
 _RAMP = np.array(  # perceptually ordered blue -> cyan -> green -> yellow -> red
@@ -184,8 +185,10 @@ def edge_colours(rms: Sequence[float], scale: float) -> NDArray[np.uint8]:
     scans joined by an edge that do not overlap are as wrong as an edge gets, not "no data".
     """
     values = np.asarray(rms, dtype=np.float64).reshape(-1)
+    values = np.where(np.isfinite(values), np.minimum(values, scale), scale)
+    values = np.round(values / scale * EDGE_SHADES) * scale / EDGE_SHADES  # a few shades: one line node each
     # from the ramp's cyan up: its dark blue end would vanish against the dark background
-    colours = ramp(np.where(np.isfinite(values), values, scale), -scale / 3, scale)
+    colours = ramp(values, -scale / 3, scale)
     return np.repeat(colours[:, None, :], 2, axis=1)
 
 

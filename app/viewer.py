@@ -58,7 +58,8 @@ class SessionViewer:
         self.pose_version = 0  # counts changes of the shown poses: what edge residuals were computed for
         self.edge_rms: dict[tuple[int, int], float] = {}
         self.edge_rms_version = -1
-        self.edge_nodes: dict[str, Any] = {}  # "/graph/trajectory", "/graph/loops"
+        self.edge_nodes: dict[str, list[Any]] = {}  # "all": the line nodes drawn, one per edge colour
+        self.edge_colours: dict[str, np.ndarray] = {}  # per kind ("/graph/trajectory", "/graph/loops"), per edge
         self.edge_scale = float(pipeline_config(self.state.session.config.engine).icp.max_distance)
         self._edges_wanted = threading.Event()
         self._edges_worker: threading.Thread | None = None
@@ -422,24 +423,37 @@ class SessionViewer:
             edges = [(e["i"], e["j"], e["kind"]) for e in self.editor.edges(self.session_id)]
             edges = [e for e in edges if e[0] < len(self.poses) and e[1] < len(self.poses)]
             known = self.edge_rms if self.edge_rms_version == self.pose_version else None
+            for node in self.edge_nodes.pop("all", []):
+                node.remove()
+            drawn: list[Any] = []
             for name, sequential, thickness, toggle in (
                 ("/graph/trajectory", True, 3.0, self.show_trajectory),
                 ("/graph/loops", False, 4.0, self.show_edges),
             ):
                 chosen = [(i, j) for i, j, kind in edges if (kind == "sequential") == sequential]
                 if known is None:
-                    colours: Any = (150, 150, 150)
+                    colours = np.full((len(chosen), 3), 150, np.uint8)
                 else:
-                    colours = scene.edge_colours([known.get((i, j), np.nan) for i, j in chosen], self.edge_scale)
-                self.edge_nodes[name] = self.server.scene.add_line_segments(
-                    name,
-                    scene.segments(chosen, self.poses) if chosen else np.zeros((1, 2, 3), np.float32),
-                    colors=colours if chosen else (0, 0, 0),
-                    thickness=thickness,
-                    thickness_units="screen",
-                    position=origin,
-                    visible=bool(toggle.value) and bool(chosen),
-                )
+                    rms = [known.get((i, j), np.nan) for i, j in chosen]
+                    colours = scene.edge_colours(rms, self.edge_scale)[:, 0]
+                self.edge_colours[name] = colours
+                segments = scene.segments(chosen, self.poses)
+                # one node per colour: viser's line segments take one colour per node reliably (its
+                # per-vertex uint8 colours reach the browser's line material unnormalised, as white)
+                shades, which = np.unique(colours, axis=0, return_inverse=True) if chosen else (colours, [])
+                for b, shade in enumerate(shades):
+                    drawn.append(
+                        self.server.scene.add_line_segments(
+                            f"{name}/{b}",
+                            segments[np.asarray(which).reshape(-1) == b],
+                            colors=tuple(int(c) for c in shade),
+                            thickness=thickness,
+                            thickness_units="screen",
+                            position=origin,
+                            visible=bool(toggle.value),
+                        )
+                    )
+            self.edge_nodes["all"] = drawn
             if known is None:
                 self._edge_residuals_later()
             self._edge_legend(known)

@@ -125,7 +125,9 @@ def test_an_edge_whose_scans_disagree_gets_a_clearly_worse_colour():
     ramp = scene.edge_colours(position, scale)[:, 0].astype(int)
     where = [position[np.abs(ramp - c.astype(int)).sum(axis=1).argmin()] for c in colours[:, 0]]
     assert where[0] < 0.25 * scale and where[1] > where[0] + 0.3 * scale
-    assert where[2] == scale  # no overlap at all is the top of the scale, not "no data"
+    top = scene.edge_colours([scale], scale)[0, 0]
+    assert np.array_equal(colours[2, 0], top)  # no overlap at all is the top of the scale, not "no data"
+    assert len({tuple(c) for c in ramp}) <= scene.EDGE_SHADES + 1  # a few shades, one line node each
 
 
 def test_pick_scan_takes_the_scan_under_the_cursor_and_in_front():
@@ -175,7 +177,10 @@ def _edge_colours_when_computed(view):  # type: ignore[no-untyped-def]
         assert time.monotonic() < deadline, "edge residuals never arrived"
         time.sleep(0.05)
     with view.lock:  # the residuals and the edges drawn with them are set together under it
-        return np.asarray(view.edge_nodes["/graph/trajectory"].colors)[:, 0]
+        colours = view.edge_colours["/graph/trajectory"]
+        drawn = {tuple(int(c) for c in node.colors) for node in view.edge_nodes["all"]}
+        assert {tuple(int(c) for c in rgb) for rgb in colours} <= drawn  # each shade is drawn
+        return colours
 
 
 def test_the_view_recolours_an_edge_when_a_scan_moves_off(corridor_view):
