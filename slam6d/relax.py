@@ -342,15 +342,14 @@ def neighbour_pairs(
     keeps that estimate; only the others are counted on the full ``sample``.
     """
     chosen = sorted(set(range(len(models))) if members is None else set(members))
-    extents = {k: models.extent(k) for k in chosen}
+    extents = np.array([models.extent(k) for k in chosen])
+    centres = np.array([poses[k][:3, 3] for k in chosen])
     found = []
     first = max(1, sample // 4)
     for a_pos, i in enumerate(chosen):
-        near = [
-            j
-            for j in chosen[a_pos + 1 :]
-            if np.linalg.norm(poses[i][:3, 3] - poses[j][:3, 3]) <= extents[i] + extents[j]
-        ]
+        gaps = np.linalg.norm(centres[a_pos + 1 :] - centres[a_pos], axis=1)
+        reach = extents[a_pos] + extents[a_pos + 1 :]
+        near = [chosen[a_pos + 1 + n] for n in np.flatnonzero(gaps <= reach)]
         if not near:
             continue
         hits, sizes = _hits(models, poses, i, near, first)
