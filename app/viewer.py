@@ -56,11 +56,14 @@ class SessionViewer:
         self.highlight: dict[int, tuple[int, int, int]] = {}
         self.selected: dict[int, tuple[int, int, int]] = {}  # scans picked for editing; drawn over highlight
         self.pose_version = 0  # counts changes of the shown poses: what edge residuals were computed for
-        self.edge_rms: dict[tuple[int, int], float] = {}
-        self.edge_rms_version = -1
+        self.edge_residuals: dict[tuple[int, int], float] = {}
+        self.edge_residual_version = -1
         self.edge_nodes: dict[str, list[Any]] = {}  # "all": the line nodes drawn, one per edge colour
         self.edge_colours: dict[str, np.ndarray] = {}  # per kind ("/graph/trajectory", "/graph/loops"), per edge
-        self.edge_scale = float(pipeline_config(self.state.session.config.engine).icp.max_distance)
+        # red from a quarter of the ICP pairing distance: an edge's point-to-plane residual (upper
+        # quartile) sits near the range noise when its scans agree and reaches centimetres at
+        # odometry-level errors
+        self.edge_scale = float(pipeline_config(self.state.session.config.engine).icp.max_distance) / 4
         self._edges_wanted = threading.Event()
         self._edges_worker: threading.Thread | None = None
         self._height_range = (0.0, 1.0)
@@ -422,7 +425,7 @@ class SessionViewer:
             origin = self.poses[0][:3, 3]
             edges = [(e["i"], e["j"], e["kind"]) for e in self.editor.edges(self.session_id)]
             edges = [e for e in edges if e[0] < len(self.poses) and e[1] < len(self.poses)]
-            known = self.edge_rms if self.edge_rms_version == self.pose_version else None
+            known = self.edge_residuals if self.edge_residual_version == self.pose_version else None
             for node in self.edge_nodes.pop("all", []):
                 node.remove()
             drawn: list[Any] = []
@@ -481,8 +484,8 @@ class SessionViewer:
                             return
                         if version != self.pose_version:
                             continue  # moved meanwhile: the next request (or a redraw) computes them
-                        self.edge_rms = {(int(e["i"]), int(e["j"])): float(e["rms"]) for e in summary.edges}
-                        self.edge_rms_version = version
+                        self.edge_residuals = {(int(e["i"]), int(e["j"])): float(e["plane"]) for e in summary.edges}
+                        self.edge_residual_version = version
                         self._draw_graph()
                 except Exception as exc:
                     if not self.stopped:
@@ -495,7 +498,7 @@ class SessionViewer:
     def _edge_legend(self, known: dict[tuple[int, int], float] | None) -> None:
         low, high = (f"rgb{tuple(int(c) for c in rgb[0])}" for rgb in scene.edge_colours([0, 1], 1.0))
         scale = (
-            f"Edges by residual RMS: <span style='color:{low}'>■</span> 0 m → "
+            f"Edges by point-to-plane residual (upper quartile): <span style='color:{low}'>■</span> 0 m → "
             f"<span style='color:{high}'>■</span> ≥ {self.edge_scale:.2f} m or no overlap"
         )
         if known is None:

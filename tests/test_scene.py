@@ -115,9 +115,9 @@ def test_an_edge_whose_scans_disagree_gets_a_clearly_worse_colour():
     models = ScanModels(local, ICPConfig())
     shown = [truth[0], truth[1], truth[2] @ pose_from_xyzrpy(0.15, -0.1, 0.05, 0.02, 0, 0.03)]  # scan 2 off
     summary = residual_summary(models, shown, [(0, 1), (1, 2)])
-    good, bad = (e["rms"] for e in summary.edges)
-    assert good < 0.05 and bad > 0.1
-    scale = ICPConfig().max_distance
+    good, bad = (e["plane"] for e in summary.edges)
+    assert good < 0.01 and bad > 0.04
+    scale = ICPConfig().max_distance / 4  # the viewer's edge scale
     colours = scene.edge_colours([good, bad, np.nan], scale)
     assert colours.shape == (3, 2, 3) and colours.dtype == np.uint8
     assert np.array_equal(colours[:, 0], colours[:, 1])  # one colour per edge, both ends
@@ -173,7 +173,7 @@ def _edge_colours_when_computed(view):  # type: ignore[no-untyped-def]
     import time
 
     deadline = time.monotonic() + 30
-    while view.edge_rms_version != view.pose_version:
+    while view.edge_residual_version != view.pose_version:
         assert time.monotonic() < deadline, "edge residuals never arrived"
         time.sleep(0.05)
     with view.lock:  # the residuals and the edges drawn with them are set together under it
@@ -194,9 +194,11 @@ def test_the_view_recolours_an_edge_when_a_scan_moves_off(corridor_view):
     view._draw_graph()  # what a new revision does
     after = _edge_colours_when_computed(view)
     assert np.array_equal(after[0], before[0])  # the untouched edge keeps its colour
-    top = scene.edge_colours([view.edge_scale], view.edge_scale)[0, 0]
-    assert tuple(after[1]) == tuple(top)  # the moved one: top of the scale
-    assert view.edge_rms[(1, 2)] > 3 * view.edge_rms[(0, 1)]
+    position = np.linspace(0, view.edge_scale, 101)  # where on the edge scale each colour sits
+    ramp = scene.edge_colours(position, view.edge_scale)[:, 0].astype(int)
+    where = [position[np.abs(ramp - c.astype(int)).sum(axis=1).argmin()] for c in (after[0], after[1])]
+    assert where[1] > where[0] + 0.4 * view.edge_scale  # the moved one: far up the scale
+    assert view.edge_residuals[(1, 2)] > 3 * view.edge_residuals[(0, 1)]
     assert "worst 1–2" in view.edge_legend.content
 
 
@@ -296,3 +298,21 @@ def test_a_reopened_view_reuses_the_display_selection_of_the_first_open(tmp_path
         shown.append([p.copy() for p in view.local])
         app.state.viewers.stop_all()
     assert all(np.array_equal(a, b) for a, b in zip(*shown, strict=True))
+
+
+def test_edge_residual_tells_aligned_sparse_scans_from_misaligned_ones():
+    """Sparse scans: closest-point distances grow with the point spacing, the plane residual does not."""
+    from app.editing import residual_summary
+    from slam6d.icp import ICPConfig
+    from slam6d.relax import ScanModels
+
+    rng = np.random.default_rng(5)
+    room = _box_room(rng, 60_000)
+    truth = [pose_from_xyzrpy(k * 0.8, 0.1 * k, 0, 0, 0, 0.05 * k) for k in range(3)]
+    local = [(room[rng.choice(len(room), 1_500, replace=False)] - p[:3, 3]) @ p[:3, :3] for p in truth]
+    local = [points + rng.normal(0, 0.003, points.shape) for points in local]  # range noise
+    models = ScanModels(local, ICPConfig())
+    shown = [truth[0], truth[1], truth[2] @ pose_from_xyzrpy(0.05, -0.04, 0.0, 0, 0, 0.01)]  # scan 2 a few cm off
+    aligned, off = residual_summary(models, shown, [(0, 1), (1, 2)]).edges
+    assert aligned["rms"] > 0.1  # spacing alone: closest points of aligned sparse scans are far apart
+    assert aligned["plane"] < 0.01 and off["plane"] > 0.025 and off["plane"] > 3 * aligned["plane"]
