@@ -115,7 +115,7 @@ class PipelineConfig:
     """
 
     voxel_size: float = 0.1
-    data_voxel_size: float = 0.25  # the scan being matched is thinned further
+    data_voxel_size: float = 0.35  # the scan being matched is thinned further
     normal_cell_voxels: float = 4.0
     sample_voxels: float = 2.0
     matching: str = "metascan"
