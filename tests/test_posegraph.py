@@ -195,3 +195,20 @@ def test_graph_whose_rotations_only_translations_fix_still_converges() -> None:
 
 def _noisy_rotation(pose: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     return make_pose(pose[:3, :3] @ so3_exp(rng.normal(0, 0.3, 3)), pose[:3, 3])
+
+
+def test_block_solver_with_eliminated_paths_matches_a_dense_solve() -> None:
+    """Chain paths eliminated by the sweep, a fixed pose inside a path, a leaf, parallel edges, loops."""
+    rng = np.random.default_rng(7)
+    count = 40
+    pairs = [(k, k + 1) for k in range(count - 1)] + [(5, 30), (31, 12), (12, 13), (20, 38)]
+    fixed = {0, 17}
+    system = BlockSystem(count, fixed, np.array([i for i, _ in pairs]), np.array([j for _, j in pairs]))
+    assert len(system.interior) > 20 and 17 not in system.interior and 12 not in system.interior
+    diag, off, dense = _random_system(rng, count, pairs)
+    rhs = rng.normal(size=(count, 6))
+    free = np.concatenate([np.arange(6 * k, 6 * k + 6) for k in range(count) if k not in fixed])
+    want = np.zeros(6 * count)
+    want[free] = np.linalg.solve(dense[np.ix_(free, free)], rhs.ravel()[free])
+    got = system.solve(diag, off, rhs)
+    np.testing.assert_allclose(got.ravel(), want, rtol=1e-8, atol=1e-10)

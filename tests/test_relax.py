@@ -9,7 +9,6 @@ from slam6d.geometry import invert, make_pose, pose_difference, pose_from_xyzrpy
 from slam6d.icp import ICPConfig
 from slam6d.metrics import absolute_trajectory_error
 from slam6d.posegraph import (
-    BlockSystem,
     PoseEdge,
     RelaxationError,
     optimize_pose_graph,
@@ -94,35 +93,6 @@ def test_disconnected_graph_fails_naming_the_loose_scans() -> None:
         optimize_pose_graph(truth, [], fixed=[0])
     with pytest.raises(RelaxationError, match="missing scan"):
         optimize_pose_graph(truth, [PoseEdge(0, 9, np.eye(4))], fixed=[0])
-
-
-def test_block_solver_with_eliminated_paths_matches_a_dense_solve() -> None:
-    """Chain paths eliminated by the sweep, a fixed pose inside a path, a leaf, parallel edges, loops."""
-    rng = np.random.default_rng(7)
-    count = 40
-    pairs = [(k, k + 1) for k in range(count - 1)] + [(5, 30), (31, 12), (12, 13), (20, 38)]
-    ei = np.array([i for i, _ in pairs])
-    ej = np.array([j for _, j in pairs])
-    fixed = {0, 17}
-    system = BlockSystem(count, fixed, ei, ej)
-    assert len(system.interior) > 20 and 17 not in system.interior and 12 not in system.interior
-    dense = np.zeros((6 * count, 6 * count))
-    diag = np.zeros((count, 6, 6))
-    off = np.zeros((len(pairs), 6, 6))
-    for e, (i, j) in enumerate(pairs):
-        a = rng.normal(size=(9, 12))
-        h = a.T @ a
-        diag[i] += h[:6, :6]
-        diag[j] += h[6:, 6:]
-        off[e] = h[:6, 6:]
-        for (p, q), block in (((i, i), h[:6, :6]), ((i, j), h[:6, 6:]), ((j, i), h[6:, :6]), ((j, j), h[6:, 6:])):
-            dense[6 * p : 6 * p + 6, 6 * q : 6 * q + 6] += block
-    rhs = rng.normal(size=(count, 6))
-    free = np.concatenate([np.arange(6 * k, 6 * k + 6) for k in range(count) if k not in fixed])
-    want = np.zeros(6 * count)
-    want[free] = np.linalg.solve(dense[np.ix_(free, free)], rhs.ravel()[free])
-    got = system.solve(diag, off, rhs)
-    np.testing.assert_allclose(got.ravel(), want, rtol=1e-8, atol=1e-10)
 
 
 def test_degenerate_information_is_reported_as_solver_failure() -> None:
