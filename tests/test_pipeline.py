@@ -235,14 +235,9 @@ def test_drifted_odometry_reproduces_the_agreed_balm_generator(shared_data) -> N
     assert relative_pose_error(odometry, reference).translation_mean == pytest.approx(0.0126, abs=0.0001)
 
 
-@pytest.mark.slow
-@pytest.mark.xfail(
-    reason="targets not met: self-consistency mean 2.95-3.0 cm (20-70 8.1 cm: its own ICP fit is 11 % / 16 cm rms, "
-    "small_gicp + gtsam gets 8.8 cm there; 10-88 3.1 cm), 57-88 1.5 cm; RPE 0.56 cm / 0.042 deg is met. Even the joint "
-    "least-squares optimum over all 3,916 pairs at 5 cm with 8M points per round leaves 2.5 cm (10-88 3.6, 20-70 7.3)",
-    strict=False,
-)
-def test_balm_hall_from_drifted_odometry(shared_data) -> None:  # type: ignore[no-untyped-def]
+@pytest.fixture(scope="module")
+def balm_run(shared_data):  # type: ignore[no-untyped-def]
+    """The whole pipeline on BALM hall from drifted odometry (seed 1), once for the tests below."""
     from benchmarks.trajectory import self_consistency
     from slam6d.drift import drifted_odometry
     from slam6d.io.registry import read_sequence
@@ -261,7 +256,26 @@ def test_balm_hall_from_drifted_odometry(shared_data) -> None:  # type: ignore[n
         f"RPE {100 * rpe.translation_mean:.2f} cm / {rpe.rotation_mean_deg:.3f} deg, self-consistency {100 * mean:.2f} cm "
         f"({', '.join(f'{i}-{j} {100 * v:.1f}' for (i, j), v in moved.items())}), stages {report.stage_seconds}"
     )
+    return rpe, moved, mean, figures
+
+
+@pytest.mark.slow
+def test_balm_hall_from_drifted_odometry_keeps_consecutive_scans_on_the_reference(balm_run) -> None:  # type: ignore[no-untyped-def]
+    """The reference is good between consecutive scans: the run must match it there (RPE)."""
+    rpe, _, _, figures = balm_run
     assert rpe.translation_mean <= 0.006 and rpe.rotation_mean_deg <= 0.05, figures
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(
+    reason="target not met: self-consistency mean 2.88 cm (0-88 2.0, 10-88 3.6, 0-60 1.8, 57-88 1.6, 5-80 2.0, "
+    "20-70 8.1, 30-60 1.2; small_gicp + gtsam 4.07 cm); even the joint least-squares optimum over all 3,916 pairs "
+    "at 5 cm with 8M points per round leaves 2.5 cm (10-88 3.6, 20-70 7.3)",
+    strict=False,
+)
+def test_balm_hall_from_drifted_odometry_is_self_consistent(balm_run) -> None:  # type: ignore[no-untyped-def]
+    """ICP started from the final poses on far-apart overlapping pairs barely moves them."""
+    _, moved, mean, figures = balm_run
     assert moved[(57, 88)] <= 0.01, figures
     assert mean <= 0.015, figures
 
