@@ -42,6 +42,9 @@ class SessionViewer:
         self.server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False, label=self.state.session.name)
         self.port = self.server.get_port()
         self.server.scene.set_up_direction("+z")
+        # no shadow maps: points neither cast nor receive shadows, and rendering the light's shadow
+        # cascades is a fixed cost on every frame (large without a GPU)
+        self.server.scene.configure_default_lights(cast_shadow=False)
         self.server.gui.configure_theme(dark_mode=True, control_width="large")
         self.lock = threading.RLock()
         self.ready = threading.Event()
