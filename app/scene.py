@@ -178,13 +178,13 @@ def segments(pairs: Sequence[tuple[int, int]], poses: Sequence[Matrix]) -> NDArr
     return np.array([[poses[i][:3, 3] - origin, poses[j][:3, 3] - origin] for i, j in pairs], dtype=np.float32)
 
 
-def edge_colours(rms: Sequence[float], scale: float) -> NDArray[np.uint8]:
-    """(N, 2, 3) colours of graph edges by their residual RMS from 0 (cyan) to ``scale`` metres (red).
+def edge_colours(residuals: Sequence[float], scale: float) -> NDArray[np.uint8]:
+    """(N, 2, 3) colours of graph edges by their residual from 0 (cyan) to ``scale`` metres (red).
 
-    An edge whose scans have no closest-point pairs at all (NaN) is drawn at the top of the ramp:
+    An edge whose scans have no point pairs at all (NaN) is drawn at the top of the ramp:
     scans joined by an edge that do not overlap are as wrong as an edge gets, not "no data".
     """
-    values = np.asarray(rms, dtype=np.float64).reshape(-1)
+    values = np.asarray(residuals, dtype=np.float64).reshape(-1)
     values = np.where(np.isfinite(values), np.minimum(values, scale), scale)
     values = np.round(values / scale * EDGE_SHADES) * scale / EDGE_SHADES  # a few shades: one line node each
     # from the ramp's cyan up: its dark blue end would vanish against the dark background

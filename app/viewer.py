@@ -276,15 +276,12 @@ class SessionViewer:
             for k, points in enumerate(self.local):
                 pose = self.poses[k]
                 self.nodes.append(
-                    self.server.scene.add_point_cloud(
+                    self._add_cloud(
                         f"/scans/{names[k] or k}",
-                        points=points,
-                        colors=self._colours(k),
-                        point_size=float(self.point_size.value),
-                        point_shading="flat",  # no per-pixel sphere shading: ~15 % faster frames without a GPU
-                        precision=scene.precision_for(points),  # type: ignore[arg-type]
-                        position=pose[:3, 3],
-                        wxyz=rotation_to_quaternion(pose[:3, :3]),
+                        points,
+                        self._colours(k),
+                        pose,
+                        precision=scene.precision_for(points),
                         visible=self.focus is None or k in self.focus,
                     )
                 )
@@ -320,21 +317,40 @@ class SessionViewer:
                 if not full and k not in self.light:
                     keep = scene.display_indices(self.local[k], 0.0, share)
                     pose = self.poses[k]
-                    light = self.server.scene.add_point_cloud(
+                    light = self._add_cloud(
                         f"/light/{k}",
-                        points=self.local[k][keep],
-                        colors=self._light_colours(self._colours(k), keep),
-                        point_size=float(self.point_size.value),
-                        point_shading="flat",
-                        precision=scene.precision_for(self.local[k]),  # type: ignore[arg-type]
-                        position=pose[:3, 3],
-                        wxyz=rotation_to_quaternion(pose[:3, :3]),
+                        self.local[k][keep],
+                        self._light_colours(self._colours(k), keep),
+                        pose,
+                        precision=scene.precision_for(self.local[k]),  # the full scan's, so both nodes match
                     )
                     self.light[k] = (light, keep)
                 if k in self.light:
                     if not full:
                         self._place(self.light[k][0], self.poses[k])
                     self.light[k][0].visible = not full
+
+    def _add_cloud(
+        self,
+        name: str,
+        points: np.ndarray,
+        colours: np.ndarray | tuple[int, int, int],
+        pose: Matrix,
+        precision: str,
+        visible: bool = True,
+    ) -> Any:
+        """A scan's points in its own frame, placed by its pose on the node (never world coordinates)."""
+        return self.server.scene.add_point_cloud(
+            name,
+            points=points,
+            colors=colours,
+            point_size=float(self.point_size.value),
+            point_shading="flat",  # no per-pixel sphere shading: ~15 % faster frames without a GPU
+            precision=precision,  # type: ignore[arg-type]
+            position=pose[:3, 3],
+            wxyz=rotation_to_quaternion(pose[:3, :3]),
+            visible=visible,
+        )
 
     @staticmethod
     def _light_colours(colours: np.ndarray | tuple[int, int, int], keep: np.ndarray) -> np.ndarray:
@@ -419,7 +435,7 @@ class SessionViewer:
         node.wxyz = rotation_to_quaternion(pose[:3, :3])
 
     def _draw_graph(self) -> None:
-        """Trajectory (sequential edges) and loop edges, each coloured by its residual RMS.
+        """Trajectory (sequential edges) and loop edges, each coloured by its point-to-plane residual.
 
         The residuals are the editor's per-edge summary (the numbers the "residuals jumped" guardrail
         compares), computed in the background for the poses shown; until they are in, edges are grey.
@@ -442,8 +458,8 @@ class SessionViewer:
                 if known is None:
                     colours = np.full((len(chosen), 3), 150, np.uint8)
                 else:
-                    rms = [known.get((i, j), np.nan) for i, j in chosen]
-                    colours = scene.edge_colours(rms, self.edge_scale)[:, 0]
+                    residuals = [known.get((i, j), np.nan) for i, j in chosen]
+                    colours = scene.edge_colours(residuals, self.edge_scale)[:, 0]
                 self.edge_colours[name] = colours
                 segments = scene.segments(chosen, self.poses)
                 # one node per colour: viser's line segments take one colour per node reliably (its
