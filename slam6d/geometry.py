@@ -156,9 +156,15 @@ def interpolate_pose(start: Matrix, end: Matrix, fraction: float) -> Matrix:
 
 
 def rotation_angle(rotation: Matrix) -> float:
-    """Angle of a rotation matrix in radians (0..pi)."""
+    """Angle of a rotation matrix in radians (0..pi).
+
+    From both the cosine (trace) and the sine (skew part): arccos of the trace alone turns the
+    1e-7 rounding of rotations read from text files into ~0.03° near the identity, which is as
+    large as the errors that trajectory metrics are meant to resolve.
+    """
     cos = (np.trace(rotation) - 1.0) / 2.0
-    return float(np.arccos(np.clip(cos, -1.0, 1.0)))
+    skew = np.array([rotation[2, 1] - rotation[1, 2], rotation[0, 2] - rotation[2, 0], rotation[1, 0] - rotation[0, 1]])
+    return float(np.arctan2(np.linalg.norm(skew) / 2.0, cos))
 
 
 def pose_difference(a: Matrix, b: Matrix) -> tuple[float, float]:

@@ -109,3 +109,22 @@ def test_pose_difference() -> None:
     b = g.pose_from_xyzrpy(1, 2, 3.5, 0.0, 0.0, 0.0)
     dt, dr = g.pose_difference(a, b)
     assert abs(dt - 0.5) < 1e-12 and abs(dr - 0.1) < 1e-12
+
+
+@settings(max_examples=50)
+@given(st.floats(0.0, np.pi), st.integers(0, 2**32 - 1))
+def test_rotation_angle_is_the_axis_angle_magnitude(angle: float, seed: int) -> None:
+    axis = np.random.default_rng(seed).normal(size=3)
+    axis /= np.linalg.norm(axis)
+    assert abs(g.rotation_angle(g.axis_angle_to_rotation(angle * axis)) - angle) < 1e-9
+
+
+def test_rotation_angle_ignores_the_rounding_of_rotations_read_from_text() -> None:
+    """Poses stored with 7 significant digits are not exactly orthonormal; a metre-scale RPE must
+    not read that as a rotation (arccos of the trace alone made it ~0.03°)."""
+    rng = np.random.default_rng(0)
+    rotation = g.axis_angle_to_rotation(rng.normal(size=3))
+    rounded = np.round(rotation, 7)
+    assert np.degrees(g.rotation_angle(rotation.T @ rounded)) < 1e-4
+    small = g.axis_angle_to_rotation(np.array([0.0, 0.0, np.radians(0.01)]))
+    assert abs(np.degrees(g.rotation_angle(rotation.T @ np.round(rotation @ small, 7))) - 0.01) < 1e-4
