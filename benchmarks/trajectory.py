@@ -42,6 +42,8 @@ from slam6d.pipeline import Pipeline, PipelineConfig
 ROOT = Path(__file__).resolve().parents[1]
 DATA = Path(os.environ.get("SLAM6D_DATA", ROOT.parent / "shared" / "data"))
 CHECK_PAIRS = ((0, 88), (10, 88), (0, 60), (57, 88), (5, 80), (20, 70), (30, 60))
+FAR_GAP = 20  # scans: pairs this far apart in the walk are "far-apart"
+FAR_RADIUS = 10.0  # metres between reference positions: such pairs overlap in the hall
 LOOP_RADIUS = 10.0  # metres: peers' loop candidates
 
 
@@ -68,18 +70,83 @@ def make_simulated_loop(directory: Path) -> None:
     simulate_session(directory, config)
 
 
-def self_consistency(sequence, poses, pairs=CHECK_PAIRS) -> dict[tuple[int, int], float]:  # type: ignore[no-untyped-def]
-    """Mean point displacement when ICP re-matches far-apart scan pairs starting from ``poses`` (metres)."""
-    moved = {}
-    for i, j in pairs:
-        model = sequence[i].points[reduce_points(sequence[i].points, 0.05)]
-        data = sequence[j].points[reduce_points(sequence[j].points, 0.1)]
-        start = invert(poses[i]) @ poses[j]
-        result = icp(ModelIndex(model), data, start, ICPConfig(max_distance=0.3, max_iterations=60))
-        moved[(i, j)] = float(
-            np.linalg.norm(transform_points(result.transform, data) - transform_points(start, data), axis=1).mean()
+class SelfConsistency:
+    """Judges a BALM hall trajectory without trusting its drifting reference.
+
+    ICP (point-to-plane, scan i's 5 cm model, scan j's 10 cm points, 0.3 m) is started from the
+    relative pose the trajectory gives a far-apart overlapping pair (i, j); the mean displacement
+    of scan j's points is how far the trajectory sits from that pair's own optimum. Two pair sets:
+
+    * ``named`` (:data:`CHECK_PAIRS`): the issue's 0-88, 10-88, 0-60, 57-88 and three of ours, all
+      far apart and mostly weakly overlapping: the hardest pairs of the walk.
+    * ``far``: every pair at least :data:`FAR_GAP` scans apart whose reference positions lie within
+      :data:`FAR_RADIUS` of each other, one in five of them (i + j divisible by 5, to keep the check
+      near 15 s). It reproduces the issue's calibration: the reference itself scores 9.5 cm there
+      (issue: 8.4 cm), small_gicp + gtsam 2.4 cm (issue: 2.3 cm), while on ``named`` they score
+      14.8 and 4.1 cm.
+
+    ``repeatability`` is the checker's own noise: the distance between the optimum found with i as
+    the model and the one found with j as the model, from the same start. Where it exceeds the
+    displacement, the check cannot tell the trajectory's error from its own.
+    """
+
+    def __init__(self, sequence, reference: Sequence[Matrix]) -> None:  # type: ignore[no-untyped-def]
+        self.sequence = sequence
+        self._models: dict[int, ModelIndex] = {}
+        self._data: dict[int, np.ndarray] = {}
+        positions = np.array([pose[:3, 3] for pose in reference])
+        count = len(positions)
+        self.far = [
+            (i, j)
+            for i in range(count)
+            for j in range(i + FAR_GAP, count)
+            if (i + j) % 5 == 0 and np.linalg.norm(positions[i] - positions[j]) <= FAR_RADIUS
+        ]
+
+    def _model(self, k: int) -> ModelIndex:
+        if k not in self._models:
+            self._models[k] = ModelIndex(self.sequence[k].points[reduce_points(self.sequence[k].points, 0.05)])
+        return self._models[k]
+
+    def _points(self, k: int) -> np.ndarray:
+        if k not in self._data:
+            self._data[k] = self.sequence[k].points[reduce_points(self.sequence[k].points, 0.1)]
+        return self._data[k]
+
+    def _optimum(self, model: int, data: int, start: Matrix) -> Matrix:
+        config = ICPConfig(max_distance=0.3, max_iterations=60)
+        return icp(self._model(model), self._points(data), start, config).transform
+
+    def _displacement(self, j: int, a: Matrix, b: Matrix) -> float:
+        points = self._points(j)
+        return float(np.linalg.norm(transform_points(a, points) - transform_points(b, points), axis=1).mean())
+
+    def moved(self, poses: Sequence[Matrix], pairs: Sequence[tuple[int, int]]) -> dict[tuple[int, int], float]:
+        """Mean point displacement (metres) when ICP re-matches each pair from ``poses``."""
+        result = {}
+        for i, j in pairs:
+            start = invert(poses[i]) @ poses[j]
+            result[(i, j)] = self._displacement(j, start, self._optimum(i, j, start))
+        return result
+
+    def repeatability(self, poses: Sequence[Matrix], pairs: Sequence[tuple[int, int]]) -> dict[tuple[int, int], float]:
+        """How far apart the two optima of each pair lie (i as model, then j as model), metres."""
+        result = {}
+        for i, j in pairs:
+            start = invert(poses[i]) @ poses[j]
+            forward = self._optimum(i, j, start)
+            backward = invert(self._optimum(j, i, invert(start)))
+            result[(i, j)] = self._displacement(j, forward, backward)
+        return result
+
+    def summary(self, poses: Sequence[Matrix]) -> str:
+        named = self.moved(poses, CHECK_PAIRS)
+        far = self.moved(poses, self.far)
+        return (
+            f"self-consistency named {100 * np.mean(list(named.values())):.2f} cm "
+            f"({', '.join(f'{i}-{j} {100 * v:.1f}' for (i, j), v in named.items())}), "
+            f"far {100 * np.mean(list(far.values())):.2f} cm ({len(far)} pairs)"
         )
-    return moved
 
 
 def balm_sequence():  # type: ignore[no-untyped-def]
@@ -271,14 +338,11 @@ def simulated(directory: Path, peers: bool, only: str | None, method: str) -> No
 def balm(peers: bool, only: str | None, method: str) -> None:
     sequence, reference = balm_sequence()
 
+    check = SelfConsistency(sequence, reference)
+
     def quality(poses: list[Matrix]) -> str:
-        moved = self_consistency(sequence, poses)
         rpe = relative_pose_error(poses, reference)
-        pairs = ", ".join(f"{i}-{j} {100 * v:.1f}" for (i, j), v in moved.items())
-        return (
-            f"self-consistency {100 * np.mean(list(moved.values())):.2f} cm ({pairs}), "
-            f"RPE {100 * rpe.translation_mean:.2f} cm / {rpe.rotation_mean_deg:.3f} deg"
-        )
+        return f"{check.summary(poses)}, RPE {100 * rpe.translation_mean:.2f} cm / {rpe.rotation_mean_deg:.3f} deg"
 
     print("balm_hall (89 scans, drifted odometry seed 1)")
     began = time.perf_counter()
@@ -288,6 +352,12 @@ def balm(peers: bool, only: str | None, method: str) -> None:
     wall = time.perf_counter() - began
     stages = ", ".join(f"{k} {v:.1f}" for k, v in report.stage_seconds.items())
     print(f"  slam6d ({method}): {quality(pipeline.poses)}, {wall:.1f} s ({load()}); stages {stages}")
+    spread = check.repeatability(pipeline.poses, CHECK_PAIRS)
+    print(
+        f"  checker repeatability on the named pairs (i as model vs j as model): "
+        f"{100 * np.mean(list(spread.values())):.2f} cm ({', '.join(f'{i}-{j} {100 * v:.1f}' for (i, j), v in spread.items())})"
+    )
+    print(f"  reference poses: {quality(list(reference))}")
     if peers:
         run_peers(sequence, quality, only)
 

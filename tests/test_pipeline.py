@@ -238,7 +238,7 @@ def test_drifted_odometry_reproduces_the_agreed_balm_generator(shared_data) -> N
 @pytest.fixture(scope="module")
 def balm_run(shared_data):  # type: ignore[no-untyped-def]
     """The whole pipeline on BALM hall from drifted odometry (seed 1), once for the tests below."""
-    from benchmarks.trajectory import self_consistency
+    from benchmarks.trajectory import CHECK_PAIRS, SelfConsistency
     from slam6d.drift import drifted_odometry
     from slam6d.io.registry import read_sequence
     from slam6d.metrics import relative_pose_error
@@ -250,13 +250,15 @@ def balm_run(shared_data):  # type: ignore[no-untyped-def]
     pipeline = Pipeline(sequence, PipelineConfig())
     report = pipeline.run()
     rpe = relative_pose_error(pipeline.poses, reference)
-    moved = self_consistency(sequence, pipeline.poses)
-    mean = float(np.mean(list(moved.values())))
+    check = SelfConsistency(sequence, reference)
+    named = check.moved(pipeline.poses, CHECK_PAIRS)
+    far = float(np.mean(list(check.moved(pipeline.poses, check.far).values())))
     figures = (
-        f"RPE {100 * rpe.translation_mean:.2f} cm / {rpe.rotation_mean_deg:.3f} deg, self-consistency {100 * mean:.2f} cm "
-        f"({', '.join(f'{i}-{j} {100 * v:.1f}' for (i, j), v in moved.items())}), stages {report.stage_seconds}"
+        f"RPE {100 * rpe.translation_mean:.2f} cm / {rpe.rotation_mean_deg:.3f} deg, self-consistency "
+        f"far pairs {100 * far:.2f} cm, named pairs {100 * np.mean(list(named.values())):.2f} cm "
+        f"({', '.join(f'{i}-{j} {100 * v:.1f}' for (i, j), v in named.items())}), stages {report.stage_seconds}"
     )
-    return rpe, moved, mean, figures
+    return rpe, named, far, figures
 
 
 @pytest.mark.slow
@@ -267,17 +269,25 @@ def test_balm_hall_from_drifted_odometry_keeps_consecutive_scans_on_the_referenc
 
 
 @pytest.mark.slow
+def test_balm_hall_far_apart_scans_agree_better_than_the_pose_graph_peer(balm_run) -> None:  # type: ignore[no-untyped-def]
+    """On every fifth overlapping pair >= 20 scans apart, ICP from our poses moves scans less than
+    from small_gicp + gtsam's (2.37 cm; the reference itself 9.45 cm)."""
+    _, _, far, figures = balm_run
+    assert far <= 0.020, figures
+
+
+@pytest.mark.slow
 @pytest.mark.xfail(
-    reason="target not met: self-consistency mean 2.88 cm (0-88 2.0, 10-88 3.6, 0-60 1.8, 57-88 1.6, 5-80 2.0, "
-    "20-70 8.1, 30-60 1.2; small_gicp + gtsam 4.07 cm); even the joint least-squares optimum over all 3,916 pairs "
-    "at 5 cm with 8M points per round leaves 2.5 cm (10-88 3.6, 20-70 7.3)",
+    reason="target not met: far pairs 1.88 cm (target 1.5), 57-88 1.5 cm (target 1); named pairs 2.88 cm. "
+    "The checker's own optimum moves 4.2 cm on the named pairs (1.2 on 57-88) when the two scans swap roles, "
+    "and fitting the poses to the checked pairs themselves reaches only 1.42 cm far / 1.14 cm on 57-88",
     strict=False,
 )
 def test_balm_hall_from_drifted_odometry_is_self_consistent(balm_run) -> None:  # type: ignore[no-untyped-def]
     """ICP started from the final poses on far-apart overlapping pairs barely moves them."""
-    _, moved, mean, figures = balm_run
-    assert moved[(57, 88)] <= 0.01, figures
-    assert mean <= 0.015, figures
+    _, named, far, figures = balm_run
+    assert named[(57, 88)] <= 0.01, figures
+    assert far <= 0.015, figures
 
 
 BUNNY_RING = ("bun000", "bun045", "bun090", "bun180", "bun270", "bun315")
