@@ -31,7 +31,15 @@ from pathlib import Path
 import numpy as np
 
 from slam6d.drift import drifted_odometry
-from slam6d.geometry import UOS, Matrix, invert, make_pose, transform_points
+from slam6d.geometry import (
+    UOS,
+    Matrix,
+    invert,
+    make_pose,
+    quaternion_to_rotation,
+    rotation_to_quaternion,
+    transform_points,
+)
 from slam6d.icp import ICPConfig, ModelIndex, icp
 from slam6d.io.poses import read_kitti_poses
 from slam6d.io.registry import read_sequence
@@ -266,11 +274,15 @@ def kiss_icp(clouds: Sequence[np.ndarray], odometry: Sequence[Matrix]) -> list[M
     config.data.deskew = False
     config.mapping.voxel_size = 0.5
     odom = KissICP(config)
-    odom.last_pose = np.array(odometry[0])
+
+    def orthonormal(pose: Matrix) -> Matrix:  # KISS-ICP aborts on the 1e-7 rounding of poses read from text
+        return make_pose(quaternion_to_rotation(rotation_to_quaternion(pose[:3, :3])), pose[:3, 3])
+
+    odom.last_pose = orthonormal(odometry[0])
     poses = []
     for k, cloud in enumerate(clouds):
         if k:
-            odom.last_delta = invert(odometry[k - 1]) @ odometry[k]  # the odometry is the motion prior
+            odom.last_delta = orthonormal(invert(odometry[k - 1]) @ odometry[k])  # the odometry is the motion prior
         odom.register_frame(np.asarray(cloud, dtype=np.float64), np.zeros(len(cloud)))
         poses.append(np.array(odom.last_pose))
     return poses
