@@ -12,6 +12,7 @@ from slam6d.posegraph import (
     RelaxationError,
     _chordal_rotations,
     _pack_edges,
+    check_connected,
     optimize_pose_graph,
     so3_exp,
 )
@@ -212,3 +213,27 @@ def test_block_solver_with_eliminated_paths_matches_a_dense_solve() -> None:
     want[free] = np.linalg.solve(dense[np.ix_(free, free)], rhs.ravel()[free])
     got = system.solve(diag, off, rhs)
     np.testing.assert_allclose(got.ravel(), want, rtol=1e-8, atol=1e-10)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_check_connected_names_exactly_the_scans_with_no_path_to_a_fixed_one(seed: int) -> None:
+    """Against a plain breadth-first search, on random sparse graphs with several components."""
+    rng = np.random.default_rng(seed)
+    count = 60
+    edges = [tuple(int(v) for v in rng.choice(count, 2, replace=False)) for _ in range(45)]
+    reached, frontier = {0}, [0]
+    while frontier:
+        node = frontier.pop()
+        for a, b in edges:
+            for here, there in ((a, b), (b, a)):
+                if here == node and there not in reached:
+                    reached.add(there)
+                    frontier.append(there)
+    loose = sorted(set(range(count)) - reached)
+    if not loose:
+        check_connected(count, edges, fixed=[0])
+        return
+    with pytest.raises(RelaxationError) as error:
+        check_connected(count, edges, fixed=[0])
+    shown = ", ".join(str(k) for k in loose[:12])
+    assert f"disconnected: {len(loose)} scan(s) ({shown}" in str(error.value)
