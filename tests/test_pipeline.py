@@ -187,6 +187,7 @@ def test_cli_run_writes_poses_frames_and_report(tmp_path) -> None:
 def test_cli_run_refuses_bad_options_without_reading_every_scan(tmp_path, monkeypatch) -> None:
     """The options are checked on a thread while the scans are read; a bad one stops the reading."""
     import threading
+    import time
     from dataclasses import replace
 
     from typer.testing import CliRunner
@@ -201,6 +202,7 @@ def test_cli_run_refuses_bad_options_without_reading_every_scan(tmp_path, monkey
 
     def slow_read(path):  # type: ignore[no-untyped-def]
         checked.wait(10)  # the options are judged before the first scan comes back
+        time.sleep(0.02)  # a real scan takes this long or longer; the judgement lands meanwhile
         reads.append(path)
         return real_read(path)
 
