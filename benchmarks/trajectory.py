@@ -78,6 +78,11 @@ def make_simulated_loop(directory: Path) -> None:
     simulate_session(directory, config)
 
 
+def per_pair(values: dict[tuple[int, int], float]) -> str:
+    """``i-j`` and centimetres for each pair, as the tables show them."""
+    return ", ".join(f"{i}-{j} {100 * v:.1f}" for (i, j), v in values.items())
+
+
 class SelfConsistency:
     """Judges a BALM hall trajectory without trusting its drifting reference.
 
@@ -152,7 +157,7 @@ class SelfConsistency:
         far = self.moved(poses, self.far)
         return (
             f"self-consistency named {100 * np.mean(list(named.values())):.2f} cm "
-            f"({', '.join(f'{i}-{j} {100 * v:.1f}' for (i, j), v in named.items())}), "
+            f"({per_pair(named)}), "
             f"far {100 * np.mean(list(far.values())):.2f} cm ({len(far)} pairs)"
         )
 
@@ -367,7 +372,7 @@ def balm(peers: bool, only: str | None, method: str) -> None:
     spread = check.repeatability(pipeline.poses, CHECK_PAIRS)
     print(
         f"  checker repeatability on the named pairs (i as model vs j as model): "
-        f"{100 * np.mean(list(spread.values())):.2f} cm ({', '.join(f'{i}-{j} {100 * v:.1f}' for (i, j), v in spread.items())})"
+        f"{100 * np.mean(list(spread.values())):.2f} cm ({per_pair(spread)})"
     )
     print(f"  reference poses: {quality(list(reference))}")
     if peers:
