@@ -79,12 +79,8 @@ def plane_residual(model: ModelIndex, data: FloatArray, max_distance: float) -> 
     on the ground plane, and those can be half of a scan. NaN where no point of ``data`` has a
     partner with a usable normal.
     """
-    plane = model.plane_index
-    _, idx = plane.nearest(data, max_distance)
-    paired = idx >= 0
-    normals, usable = model.plane_normals_for(idx[paired])
-    offsets = (data[paired] - plane.points[idx[paired]])[usable]
-    distances = np.abs(np.einsum("ij,ij->i", offsets, normals[usable]))
+    found, partners, _, normals = model.plane_pairs(data, max_distance)
+    distances = np.abs(np.einsum("ij,ij->i", data[found] - partners, normals))
     return float(np.percentile(distances, 75)) if len(distances) else float("nan")
 
 

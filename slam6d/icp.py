@@ -487,6 +487,25 @@ class ModelIndex:
         normals, usable = self.plane_normals_for(np.arange(len(self.plane_indices)))
         return self.plane_index.points, normals, usable
 
+    def sample_points(self, sample: IndexArray) -> FloatArray:
+        """Coordinates of plane-sample points (indices into the sample), in the model's frame."""
+        return self.plane_index.points[sample]
+
+    def plane_pairs(
+        self, points: FloatArray, max_distance: float
+    ) -> tuple[IndexArray, FloatArray, FloatArray, FloatArray]:
+        """Point-to-plane pairs of ``points`` (model frame) with the plane sample within ``max_distance``:
+        (indices into ``points``, paired sample points, their distances, the sample's normals there).
+
+        Points whose partner has no usable normal (a line, too few neighbours) are left out: what
+        ICP, loop verification and the workbench's edge residuals all pair with.
+        """
+        dist, idx = self.plane_index.nearest(points, max_distance)
+        found = np.flatnonzero(idx >= 0)
+        normals, usable = self.plane_normals_for(idx[found])
+        found = found[usable]
+        return found, self.sample_points(idx[found]), dist[found], normals[usable]
+
 
 class StackedModel(ModelIndex):
     """Several scans, each with its own kd-trees and normals in its own frame, placed by poses: a
@@ -706,14 +725,7 @@ def _pairs(
         dist, idx = model.nearest(moved, max_distance)
         data_idx = np.flatnonzero(idx >= 0)
         return data_idx, model.points[idx[data_idx]], dist[data_idx], None
-    sample = model.plane_index
-    dist, idx = sample.nearest(moved, max_distance)
-    data_idx = np.flatnonzero(idx >= 0)
-    normals, usable = model.plane_normals_for(idx[data_idx])
-    data_idx = data_idx[usable]
-    paired = idx[data_idx]
-    points = model.sample_points(paired) if isinstance(model, StackedModel) else sample.points[paired]
-    return data_idx, points, dist[data_idx], normals[usable]
+    return model.plane_pairs(moved, max_distance)
 
 
 def icp_iterations(

@@ -222,12 +222,9 @@ def translation_constraint(
     sliding along the wall, and ICP's answer along that direction is then noise or a local minimum.
     """
     moved = transform_points(transform, np.asarray(data_points, dtype=np.float64))
-    _, idx = model.plane_index.nearest(moved, max_distance)
-    paired = idx[idx >= 0]
-    if len(paired) == 0:
+    _, _, _, normals = model.plane_pairs(moved, max_distance)
+    if len(normals) == 0:
         return 0.0, np.array([1.0, 0.0, 0.0])
-    normals, usable = model.plane_normals_for(paired)
-    normals = normals[usable]
     values, vectors = np.linalg.eigh(normals.T @ normals)
     return float(values[0]), vectors[:, 0]
 
