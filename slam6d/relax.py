@@ -238,12 +238,16 @@ def _placed_in(
     each point came from, and the relative poses inv(X_i) X_j. Querying scan i's tree once with
     all of them replaces one query (and its Python overhead) per pair.
     """
-    counts = [count] * len(others) if isinstance(count, int) else count
-    own = [models.thinned(j, c) for j, c in zip(others, counts, strict=True)]
-    points = np.concatenate(own)
-    source = np.repeat(np.arange(len(others)), [len(d) for d in own])
+    points, source = _gathered(models, others, [count] * len(others) if isinstance(count, int) else count)
     relative = _relative(poses, i, others)
     return _place(points, source, relative), points, source, relative
+
+
+def _gathered(models: ScanModels, others: Sequence[int], counts: Sequence[int]) -> tuple[FloatArray, NDArray[np.int64]]:
+    """The thinned points of each scan in ``others`` (in its own frame) stacked, and the position in
+    ``others`` each came from."""
+    own = [models.thinned(j, c) for j, c in zip(others, counts, strict=True)]
+    return np.concatenate(own), np.repeat(np.arange(len(others)), [len(d) for d in own])
 
 
 def _relative(poses: Sequence[Matrix], i: int, others: Sequence[int]) -> FloatArray:
@@ -572,16 +576,9 @@ def _batches(
 ) -> list[_ScanBatch]:
     batches = []
     for i, others in _by_model(graph_pairs).items():
-        own = [models.thinned(j, budget[(i, j)][0]) for j in others]
-        batches.append(
-            _ScanBatch(
-                i,
-                np.array(others, dtype=np.int64),
-                np.concatenate(own),
-                np.repeat(np.arange(len(others)), [len(d) for d in own]),
-                np.array([budget[(i, j)][1] for j in others]),
-            )
-        )
+        points, source = _gathered(models, others, [budget[(i, j)][0] for j in others])
+        weights = np.array([budget[(i, j)][1] for j in others])
+        batches.append(_ScanBatch(i, np.array(others, dtype=np.int64), points, source, weights))
     return batches
 
 
