@@ -379,6 +379,24 @@ def balm(peers: bool, only: str | None, method: str) -> None:
         run_peers(sequence, quality, only)
 
 
+def gtsam_problem(start, edges):  # type: ignore[no-untyped-def]
+    """The same pose graph for gtsam: scan 0 held by a tight prior, each edge a between-factor with
+    its information reordered (gtsam puts rotation first, :class:`slam6d.posegraph.PoseEdge`
+    translation). Returns the factor graph and the start values."""
+    import gtsam
+
+    order = [3, 4, 5, 0, 1, 2]
+    graph = gtsam.NonlinearFactorGraph()
+    graph.add(gtsam.PriorFactorPose3(0, gtsam.Pose3(start[0]), gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)))
+    for e in edges:
+        noise = gtsam.noiseModel.Gaussian.Information(np.asarray(e.information)[order][:, order])
+        graph.add(gtsam.BetweenFactorPose3(e.i, e.j, gtsam.Pose3(e.measurement), noise))
+    values = gtsam.Values()
+    for k, pose in enumerate(start):
+        values.insert(k, gtsam.Pose3(pose))
+    return graph, values
+
+
 def relax_graph(count: int = 10_000, loop_fraction: float = 0.05) -> None:
     """Our pose-graph solver and gtsam on the same noisy 10,000-pose graph with random loop edges."""
     import gtsam
@@ -408,14 +426,7 @@ def relax_graph(count: int = 10_000, loop_fraction: float = 0.05) -> None:
     began, cpu = time.perf_counter(), time.process_time()
     ours = optimize_pose_graph(start, edges, fixed=[0])
     ours_s, ours_cpu = time.perf_counter() - began, time.process_time() - cpu
-    graph = gtsam.NonlinearFactorGraph()
-    noise = gtsam.noiseModel.Gaussian.Information(info[[3, 4, 5, 0, 1, 2]][:, [3, 4, 5, 0, 1, 2]])
-    graph.add(gtsam.PriorFactorPose3(0, gtsam.Pose3(start[0]), gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)))
-    for e in edges:
-        graph.add(gtsam.BetweenFactorPose3(e.i, e.j, gtsam.Pose3(e.measurement), noise))
-    values = gtsam.Values()
-    for k, pose in enumerate(start):
-        values.insert(k, gtsam.Pose3(pose))
+    graph, values = gtsam_problem(start, edges)
     began, cpu = time.perf_counter(), time.process_time()
     params = gtsam.GaussNewtonParams()
     optimizer = gtsam.GaussNewtonOptimizer(graph, values, params)

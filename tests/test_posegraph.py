@@ -128,15 +128,9 @@ def test_optimum_of_a_loop_graph_matches_gtsam() -> None:
     ours = optimize_pose_graph(start, edges, fixed=[0])
     assert ours.converged and ours.residual_after < 1e-5 * ours.residual_before
 
-    graph = gtsam.NonlinearFactorGraph()
-    information = edges[0].information[[3, 4, 5, 0, 1, 2]][:, [3, 4, 5, 0, 1, 2]]  # gtsam: rotation first
-    noise = gtsam.noiseModel.Gaussian.Information(information)
-    graph.add(gtsam.PriorFactorPose3(0, gtsam.Pose3(start[0]), gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)))
-    for e in edges:
-        graph.add(gtsam.BetweenFactorPose3(e.i, e.j, gtsam.Pose3(e.measurement), noise))
-    values = gtsam.Values()
-    for k, pose in enumerate(start):
-        values.insert(k, gtsam.Pose3(pose))
+    from benchmarks.trajectory import gtsam_problem
+
+    graph, values = gtsam_problem(start, edges)
     params = gtsam.GaussNewtonParams()
     params.setRelativeErrorTol(1e-10)
     result = gtsam.GaussNewtonOptimizer(graph, values, params).optimize()
