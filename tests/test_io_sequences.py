@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from slam6d.errors import FormatError
-from slam6d.geometry import Y_UP, make_pose, pose_from_xyzrpy, quaternion_to_rotation, rotation_to_quaternion
+from slam6d.geometry import UOS, Y_UP, make_pose, pose_from_xyzrpy, quaternion_to_rotation, rotation_to_quaternion
 from slam6d.io import read_scan, read_sequence
 from slam6d.io.csv import write_csv_cloud
 from slam6d.io.kitti import AmbiguousPosesWarning, write_kitti_bin
@@ -158,23 +158,21 @@ def test_map_writer_refuses_unknown_suffix(tmp_path: Path) -> None:
         write_map(tmp_path / "map.obj", np.zeros((3, 3)))
 
 
-def test_uos_folder_read_on_threads_keeps_order_progress_and_the_first_bad_file(tmp_path: Path, monkeypatch) -> None:  # type: ignore[no-untyped-def]
-    """uos scans are parsed on several threads; scans, progress and errors come in file order as on one."""
-    from slam6d.io import registry
+def test_uos_folder_reads_in_file_order_with_progress_and_stops_at_the_first_bad_file(tmp_path: Path) -> None:
+    """Scans keep the numbering's order (scan010 after scan009), progress counts every file, and of
+    two broken files the user is told about the first, by line."""
     from slam6d.io.uos import write_uos_scan
 
-    for k in range(12):
-        write_uos_scan(tmp_path, k, RNG.uniform(-500, 500, (300 + k, 3)), make_pose(np.eye(3), [k, 0.0, 0.0]))
+    clouds = [RNG.uniform(-500, 500, (300 + k, 3)) for k in range(12)]
+    for k, cloud in enumerate(clouds):
+        write_uos_scan(tmp_path, k, cloud, make_pose(np.eye(3), [k, 0.0, 0.0]))
     seen: list[tuple[int, int]] = []
-    threaded = read_sequence(tmp_path, "uos", progress=lambda done, total: seen.append((done, total)))
-    monkeypatch.setattr(registry, "READ_THREADS", 1)
-    alone = read_sequence(tmp_path, "uos")
+    sequence = read_sequence(tmp_path, "uos", progress=lambda done, total: seen.append((done, total)))
     assert seen == [(k + 1, 12) for k in range(12)]
-    assert [s.name for s in threaded] == [f"scan{k:03d}" for k in range(12)]
-    for a, b in zip(threaded, alone, strict=True):
-        np.testing.assert_array_equal(a.points, b.points)
-        np.testing.assert_array_equal(a.pose, b.pose)
-    monkeypatch.setattr(registry, "READ_THREADS", 2)
+    assert [s.name for s in sequence] == [f"scan{k:03d}" for k in range(12)]
+    for k, scan in enumerate(sequence):
+        assert len(scan.points) == len(clouds[k])
+        np.testing.assert_allclose(scan.pose[:3, 3], UOS.pose_to_canonical(make_pose(np.eye(3), [k, 0.0, 0.0]))[:3, 3])
     (tmp_path / "scan005.3d").write_text("1 2 3\n4 five 6\n")
     (tmp_path / "scan009.3d").write_text("1 2\n")
     with pytest.raises(FormatError, match=r"scan005\.3d:2: .five. is not a number"):

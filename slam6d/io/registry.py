@@ -8,10 +8,8 @@ empty scans, converting to the canonical frame - happens here once.
 
 from __future__ import annotations
 
-import os
 import warnings
-from collections.abc import Callable, Iterator
-from concurrent.futures import ThreadPoolExecutor
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -46,13 +44,6 @@ class ScanFormat:
     # Suffixes of files that list a sequence (e.g. Stanford ``.conf``): read_sequence on such a file
     # passes it to discover/sequence_poses in place of a directory.
     index_suffixes: tuple[str, ...] = ()
-    # Whether ``read`` may run on several files at once in threads. Worth it when the reader spends its
-    # time outside the GIL (compiled text parsing, file reads, array work): 46 ASCII uos scans are read
-    # ~1.7x faster on 2 cores.
-    threaded_read: bool = False
-
-
-READ_THREADS = min(2, os.cpu_count() or 1)
 
 
 class NonFinitePointsWarning(UserWarning):
@@ -201,8 +192,8 @@ def read_sequence(
     files = all_files[first:stop]
     conv = convention or fmt.convention
     scans = []
-    workers = min(READ_THREADS, len(files)) if fmt.threaded_read else 1
-    for index, scan in enumerate(_read_in_order(files, lambda file: read_scan(file, fmt.name, options, conv), workers)):
+    for index, file in enumerate(files):
+        scan = read_scan(file, fmt.name, options, conv)
         scans.append(scan)
         if progress is not None:
             progress(index + 1, len(files))
@@ -221,22 +212,6 @@ def read_sequence(
             scan.pose = conv.pose_to_canonical(native)
             scan.has_pose = True
     return ScanSequence(scans, conv, path, fmt.name)
-
-
-def _read_in_order(files: list[Path], read: Callable[[Path], Scan], workers: int) -> Iterator[Scan]:
-    """``read`` of each file, in file order, on ``workers`` threads: the first bad file raises as it
-    would without threads, and files not started yet are then skipped."""
-    if workers <= 1:
-        yield from map(read, files)
-        return
-    with ThreadPoolExecutor(workers) as pool:
-        futures = [pool.submit(read, file) for file in files]
-        try:
-            for future in futures:
-                yield future.result()
-        finally:
-            for future in futures:
-                future.cancel()
 
 
 _LOADED = False

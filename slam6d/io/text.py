@@ -70,7 +70,7 @@ def parse_numeric_rows(
 _POW10 = np.array([10.0**k for k in range(23)])
 
 
-@numba.njit(cache=True, nogil=True)  # nogil: read_sequence parses files on several threads
+@numba.njit(cache=True, nogil=True)  # nogil: `slam6d run` imports the engine on a thread meanwhile
 def _parse_ascii_numbers(buf, comment, pow10):  # type: ignore[no-untyped-def]
     """(values, columns per row, ok) from ASCII bytes; ok is False on anything but plain numbers in even rows."""
     n = buf.shape[0]

@@ -113,6 +113,5 @@ UOS_FORMAT = register_format(
         read=read_uos_scan,
         description="3DTK uos: scanNNN.3d + scanNNN.pose (cm, degrees, left-handed, y up)",
         discover=discover_uos,
-        threaded_read=True,
     )
 )
