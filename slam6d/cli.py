@@ -344,8 +344,8 @@ def run(
     typer.echo(f"{len(sequence)} scans registered; loops closed: {closed}")
     if report.residual_before is not None:
         typer.echo(
-            f"relaxation ({report.relaxation}): neighbour-pair RMS {report.residual_before:.4f} -> "
-            f"{report.residual_after:.4f} m over {report.neighbour_pairs} pairs"
+            f"relaxation ({report.relaxation}): point-to-plane RMS {100 * report.residual_before:.2f} -> "
+            f"{100 * report.residual_after:.2f} cm over {report.neighbour_pairs} neighbour pairs"
         )
     stages = ", ".join(f"{k} {v:.2f}s" for k, v in report.stage_seconds.items())
     typer.echo(f"times: reading {read_seconds:.2f}s, {stages}; total {time.perf_counter() - began:.2f}s")

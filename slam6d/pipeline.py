@@ -224,7 +224,7 @@ class PipelineReport:
     loops: list[LoopHypothesis]  # verified hypotheses (accepted or not)
     loops_closed: list[tuple[int, int]]
     relaxation: str
-    residual_before: float | None  # RMS closest-point distance over neighbour pairs, metres
+    residual_before: float | None  # RMS point-to-plane distance over neighbour pairs, metres
     residual_after: float | None
     chi2_before: float | None
     chi2_after: float | None
