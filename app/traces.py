@@ -140,7 +140,7 @@ def replay_frames(trace: dict[str, Any]) -> list[ReplayFrame]:
         elif kind == "LoopClosed":
             text = f"loop {event['loop']['i']}-{event['loop']['j']} closed"
         elif kind == "RelaxationProgressed":
-            text = f"relaxation round {event['iteration']}: {event['residual']:.4g}"
+            text = f"relaxation round {event['iteration']}: residual {100 * event['residual']:.2f} cm"
         elif kind == "Finished":
             current, model = None, []
             text = "finished"

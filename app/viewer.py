@@ -738,7 +738,7 @@ class Stepper:
             viewer.step_status.content = (
                 f"loop {event.loop.i}-{event.loop.j} closed; largest move {max(event.displacement, default=0):.2f} m"
                 if kind == "LoopClosed"
-                else f"relaxation iteration {event.iteration}: residual {event.residual:.4f} m"
+                else f"relaxation iteration {event.iteration}: residual {100 * event.residual:.2f} cm"
             )
         else:
             viewer.step_status.content = kind

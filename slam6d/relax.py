@@ -771,7 +771,7 @@ def lum_relaxation(
                 moved.append(k)
             current[k] = pose
         if progress is not None:
-            progress(rounds, last.chi2, moved)
+            progress(rounds, last.residual, moved)
         # re-pairing keeps every scan jittering by a fraction of a millimetre, so a round that no
         # longer lowers the robust cost (at the final scale: comparable between rounds) ends it too
         settled = previous is not None and abs(previous - last.cost) <= config.chi2_tolerance * previous
