@@ -273,7 +273,8 @@ def test_balm_hall_from_drifted_odometry_keeps_consecutive_scans_on_the_referenc
 @pytest.mark.slow
 def test_balm_hall_far_apart_scans_agree_better_than_the_pose_graph_peer(balm_run) -> None:  # type: ignore[no-untyped-def]
     """On every fifth overlapping pair >= 20 scans apart, ICP from our poses moves scans less than
-    from small_gicp + gtsam's (2.37 cm; the reference itself 9.45 cm)."""
+    from either pose-graph peer's (small_gicp + gtsam 2.37 cm, open3d multiway 2.22 cm; the
+    reference itself 9.45 cm)."""
     _, _, far, figures = balm_run
     assert far <= 0.020, figures
 
