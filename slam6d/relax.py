@@ -270,28 +270,24 @@ def _place(points, source, relative):  # type: ignore[no-untyped-def]
 
 
 @numba.njit(cache=True, nogil=True)
-def _pair_blocks(q, p, found, matched, model, normals, usable, relative, source, pairs, robust_scale):  # type: ignore[no-untyped-def]
+def _pair_blocks(q, p, found, partners, normals, relative, source, pairs, robust_scale):  # type: ignore[no-untyped-def]
     """Per pair: J^T W J (12x12, order i then j), J^T W r, the sums of r² and of w r², and the point count.
 
-    Point ``found[t]`` (placed ``q``, own frame ``p``) is paired with model point ``matched[found[t]]``
-    whose normal is ``normals[t]``, skipped unless ``usable[t]``. Accumulated point by point (and
-    gathered here): the (n, 12) Jacobian and the per-pair products built with numpy cost more than
-    the closest-point query of the round.
+    Point ``found[t]`` (placed ``q``, own frame ``p``) is paired with the model point ``partners[t]``
+    whose normal is ``normals[t]``. Accumulated point by point: the (n, 12) Jacobian and the
+    per-pair products built with numpy cost more than the closest-point query of the round.
     """
     blocks = np.zeros((pairs, 12, 12))
     gradients = np.zeros((pairs, 12))
     sums = np.zeros((pairs, 3))  # r², w r², count
     jac = np.empty(12)
     for t in range(found.shape[0]):
-        if not usable[t]:
-            continue
         n = found[t]
-        k = matched[n]
         s = source[n]
         nx, ny, nz = normals[t, 0], normals[t, 1], normals[t, 2]
         qx, qy, qz = q[n, 0], q[n, 1], q[n, 2]
         px, py, pz = p[n, 0], p[n, 1], p[n, 2]
-        r = (qx - model[k, 0]) * nx + (qy - model[k, 1]) * ny + (qz - model[k, 2]) * nz
+        r = (qx - partners[t, 0]) * nx + (qy - partners[t, 1]) * ny + (qz - partners[t, 2]) * nz
         rel = relative[s]
         # R_ij^T n
         ax = rel[0, 0] * nx + rel[1, 0] * ny + rel[2, 0] * nz
@@ -383,14 +379,22 @@ def pair_residual(
     models: ScanModels, poses: Sequence[Matrix], pairs: Sequence[NeighbourPair], sample: int = 150
 ) -> float:
     """RMS point-to-plane distance over all neighbour pairs (pairs within the ICP max distance), metres."""
-    total, count = 0.0, 0
-    for i, others in _by_model(pairs).items():
-        placed, _, _, _ = _placed_in(models, poses, i, others, sample)
-        found, partners, _, normals = models.plane_model(i).plane_pairs(placed, models.config.max_distance)
-        residual = np.einsum("ij,ij->i", placed[found] - partners, normals)
-        total += float(residual @ residual)
-        count += len(found)
-    return float(np.sqrt(total / count)) if count else float("nan")
+    residuals = [
+        _plane_residuals(models, i, _placed_in(models, poses, i, others, sample)[0])
+        for i, others in _by_model(pairs).items()
+    ]
+    return _rms(residuals)
+
+
+def _plane_residuals(models: ScanModels, i: int, placed: FloatArray) -> FloatArray:
+    """Point-to-plane residuals of ``placed`` (scan i's frame) paired with scan i's plane model."""
+    found, partners, _, normals = models.plane_model(i).plane_pairs(placed, models.config.max_distance)
+    return np.einsum("ij,ij->i", placed[found] - partners, normals)
+
+
+def _rms(residuals: Sequence[FloatArray]) -> float:
+    count = sum(len(r) for r in residuals)
+    return float(np.sqrt(sum(float(r @ r) for r in residuals) / count)) if count else float("nan")
 
 
 def _adjacency(pairs: Sequence[NeighbourPair], count: int) -> list[list[int]]:
@@ -608,21 +612,9 @@ def _scan_system(models: ScanModels, current: Sequence[Matrix], batch: _ScanBatc
     model = models.plane_model(batch.i)
     relative = _relative(current, batch.i, batch.others)
     q = _place(batch.points, batch.source, relative)
-    _, idx = model.plane_index.nearest(q, models.config.max_distance)
-    found = np.flatnonzero(idx >= 0)
-    normals, usable = model.plane_normals_for(idx[found])  # estimated once, where pairs first need them
+    found, partners, _, normals = model.plane_pairs(q, models.config.max_distance)
     blocks, gradients, sums = _pair_blocks(
-        q,
-        batch.points,
-        found,
-        idx,
-        model.plane_index.points,
-        normals,
-        usable,
-        relative,
-        batch.source,
-        len(batch.others),
-        float(robust_scale),
+        q, batch.points, found, partners, normals, relative, batch.source, len(batch.others), float(robust_scale)
     )
     return _ScanSystem(blocks, gradients, sums)
 
@@ -718,7 +710,9 @@ def _plane_rms(sums: FloatArray) -> float:
 
 def _round_residual(models: ScanModels, current: Sequence[Matrix], batches: Sequence[_ScanBatch]) -> float:
     """The rounds' residual at ``current`` without a step: the query of one more round."""
-    return _plane_rms(np.concatenate([_scan_system(models, current, batch, 0.0).sums for batch in batches]))
+    return _rms(
+        [_plane_residuals(models, b.i, _place(b.points, b.source, _relative(current, b.i, b.others))) for b in batches]
+    )
 
 
 def lum_relaxation(
@@ -735,9 +729,9 @@ def lum_relaxation(
     The residuals reported come from the rounds' own queries (RMS point-to-plane distance of the
     sampled data points paired within the ICP max distance): before is the first
     round's, at the starting poses; after is the last round's, at the poses it started from when
-    that round ended the relaxation by settling (its own step moved no scan by more than
-    ``tolerance`` or changed the robust cost by less than ``chi2_tolerance``), otherwise one more
-    query at the final poses.
+    that round ended the relaxation by settling (at the final robust scale its step moved no scan
+    by more than ``settle_fraction`` of that scale, or changed the robust cost by less than
+    ``chi2_tolerance``), otherwise one more query at the final poses.
     """
     began = time.perf_counter()
     before, current, chosen, fixed_set, pairs = _set_up(models, poses, fixed, members, config)

@@ -205,11 +205,7 @@ def test_lum_pair_blocks_match_the_numpy_jacobians() -> None:
     m = q + rng.normal(0, 0.05, (n, 3))
     normals = rng.normal(size=(n, 3))
     normals /= np.linalg.norm(normals, axis=1, keepdims=True)
-    everything = np.arange(n)
-    usable = np.ones(n, dtype=bool)
-    blocks, gradients, sums = _pair_blocks(
-        q, p, everything, everything, m, normals, usable, relative, source, pairs, scale
-    )
+    blocks, gradients, sums = _pair_blocks(q, p, np.arange(n), m, normals, relative, source, pairs, scale)
     r = np.einsum("ij,ij->i", q - m, normals)
     n_j = np.einsum("nk,nkl->nl", normals, relative[source, :3, :3])
     jac = np.hstack([-normals, -np.cross(q, normals), n_j, np.cross(p, n_j)])

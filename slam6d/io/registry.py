@@ -193,8 +193,7 @@ def read_sequence(
     conv = convention or fmt.convention
     scans = []
     for index, file in enumerate(files):
-        scan = read_scan(file, fmt.name, options, conv)
-        scans.append(scan)
+        scans.append(read_scan(file, fmt.name, options, conv))
         if progress is not None:
             progress(index + 1, len(files))
     # External poses are aligned with every scan of the directory, before --first/--last slicing.
