@@ -79,8 +79,7 @@ def plane_residual(model: ModelIndex, data: FloatArray, max_distance: float) -> 
     on the ground plane, and those can be half of a scan. NaN where no point of ``data`` has a
     partner with a usable normal.
     """
-    found, partners, _, normals = model.plane_pairs(data, max_distance)
-    distances = np.abs(np.einsum("ij,ij->i", data[found] - partners, normals))
+    distances = np.abs(model.plane_residuals(data, max_distance))
     return float(np.percentile(distances, 75)) if len(distances) else float("nan")
 
 

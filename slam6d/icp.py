@@ -506,6 +506,12 @@ class ModelIndex:
         found = found[usable]
         return found, self.sample_points(idx[found]), dist[found], normals[usable]
 
+    def plane_residuals(self, points: FloatArray, max_distance: float) -> FloatArray:
+        """Signed point-to-plane distances of the :meth:`plane_pairs` of ``points``: how far the
+        points that pair lie off the model's surface, whatever the scans' point spacing."""
+        found, partners, _, normals = self.plane_pairs(points, max_distance)
+        return np.einsum("ij,ij->i", points[found] - partners, normals)
+
 
 class StackedModel(ModelIndex):
     """Several scans, each with its own kd-trees and normals in its own frame, placed by poses: a

@@ -387,9 +387,8 @@ def pair_residual(
 
 
 def _plane_residuals(models: ScanModels, i: int, placed: FloatArray) -> FloatArray:
-    """Point-to-plane residuals of ``placed`` (scan i's frame) paired with scan i's plane model."""
-    found, partners, _, normals = models.plane_model(i).plane_pairs(placed, models.config.max_distance)
-    return np.einsum("ij,ij->i", placed[found] - partners, normals)
+    """Point-to-plane residuals of ``placed`` (scan i's frame) against scan i's plane model."""
+    return models.plane_model(i).plane_residuals(placed, models.config.max_distance)
 
 
 def _rms(residuals: Sequence[FloatArray]) -> float:
