@@ -20,7 +20,7 @@ import time
 import traceback
 import weakref
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, Any
+from typing import Annotated, Any
 
 import numpy as np
 from fastapi import APIRouter, Header, HTTPException
@@ -28,15 +28,13 @@ from fastapi.responses import FileResponse
 from pydantic import BaseModel, Field
 
 from app.jobs import JobConflictError, Work
+from app.panels.host import ViewerHost
 from app.workbench import UnknownSessionError, Workbench
 from slam6d.camera_path import CameraPath, Keyframe, camera_path_from_dict, trajectory_path
 from slam6d.errors import Slam6dError
 from slam6d.geometry import Matrix, rotation_to_quaternion
 from slam6d.render import COLOR_MODES, SHADINGS, RenderOptions, render_fly_through, scene_from_sequence
 from slam6d.session import Session
-
-if TYPE_CHECKING:
-    from app.viewer import SessionViewer
 
 RENDERS_DIR = "renders"
 RENDER_KIND = "render"
@@ -321,7 +319,7 @@ def build_render_router(workbench: Workbench) -> APIRouter:
 class RenderPanel:
     """The "Fly-through" folder of a session's 3D view, shared (like everything there) by all its browsers."""
 
-    def __init__(self, viewer: SessionViewer) -> None:
+    def __init__(self, viewer: ViewerHost) -> None:
         self.viewer = viewer
         self.workbench = viewer.workbench
         self.session_id = viewer.session_id

@@ -122,22 +122,22 @@ class SessionViewer:
             self.undo_button = gui.add_button("Undo")
             self.redo_button = gui.add_button("Redo")
 
-        self.colour.on_update(lambda _: self._run_safely(self.recolour))
+        self.colour.on_update(lambda _: self.run_safely(self.recolour))
         self.point_size.on_update(lambda _: self._set_point_size())
-        self.apply_budget.on_click(lambda _: self._run_safely(self._rebuild_scans))
-        self.show_trajectory.on_update(lambda _: self._draw_graph())
-        self.show_edges.on_update(lambda _: self._draw_graph())
+        self.apply_budget.on_click(lambda _: self.run_safely(self._rebuild_scans))
+        self.show_trajectory.on_update(lambda _: self.draw_graph())
+        self.show_edges.on_update(lambda _: self.draw_graph())
         self.undo_button.on_click(
-            lambda e: self._run_safely(lambda: self.workbench.undo(self.session_id, self.author(e)))
+            lambda e: self.run_safely(lambda: self.workbench.undo(self.session_id, self.author(e)))
         )
         self.redo_button.on_click(
-            lambda e: self._run_safely(lambda: self.workbench.redo(self.session_id, self.author(e)))
+            lambda e: self.run_safely(lambda: self.workbench.redo(self.session_id, self.author(e)))
         )
-        self.run_button.on_click(lambda e: self._run_safely(lambda: self._start_registration(self.author(e))))
+        self.run_button.on_click(lambda e: self.run_safely(lambda: self._start_registration(self.author(e))))
         self.cancel_button.on_click(lambda _: self._cancel_jobs())
-        self.step_button.on_click(lambda e: self._run_safely(lambda: self._stepper(self.author(e)).step()))
-        self.next_scan_button.on_click(lambda e: self._run_safely(lambda: self._stepper(self.author(e)).next_scan()))
-        self.play_button.on_click(lambda e: self._run_safely(lambda: self._stepper(self.author(e)).play()))
+        self.step_button.on_click(lambda e: self.run_safely(lambda: self._stepper(self.author(e)).step()))
+        self.next_scan_button.on_click(lambda e: self.run_safely(lambda: self._stepper(self.author(e)).next_scan()))
+        self.play_button.on_click(lambda e: self.run_safely(lambda: self._stepper(self.author(e)).play()))
         self.pause_button.on_click(lambda _: self.stepper and self.stepper.pause())
 
     def _on_connect(self, client: viser.ClientHandle) -> None:
@@ -149,7 +149,7 @@ class SessionViewer:
         field = self.client_names.get(getattr(event, "client_id", -1))
         return (field.value.strip() if field is not None else "") or "anonymous"
 
-    def _run_safely(self, action: Any) -> None:
+    def run_safely(self, action: Any) -> None:
         """GUI callbacks: an engine error becomes a visible warning, not a dead button."""
         try:
             action()
@@ -215,14 +215,14 @@ class SessionViewer:
                 f"**{self.state.session.name}** · {len(self.local)} scans · coarse view "
                 f"({self.coarse_points:,} points), loading full detail…"
             )
-            self._draw_graph()
+            self.draw_graph()
         selection = scene.cached_budget_selection(
             self.state.session.folder / CACHE_DIR / "display.npz", clouds, budget, voxel
         )
         if self.coarse_points:
             self._let_browsers_draw_coarse(coarse_sent)
         self._show_selection(sequence, selection, names, replace=not self.coarse_points)
-        self._draw_graph()
+        self.draw_graph()
         self._update_status()
 
     def _let_browsers_draw_coarse(self, sent: float) -> None:
@@ -279,7 +279,7 @@ class SessionViewer:
                     self._add_cloud(
                         f"/scans/{names[k] or k}",
                         points,
-                        self._colours(k),
+                        self.scan_colours(k),
                         pose,
                         precision=scene.precision_for(points),
                         visible=self.focus is None or k in self.focus,
@@ -320,7 +320,7 @@ class SessionViewer:
                     light = self._add_cloud(
                         f"/light/{k}",
                         self.local[k][keep],
-                        self._light_colours(self._colours(k), keep),
+                        self._light_colours(self.scan_colours(k), keep),
                         pose,
                         precision=scene.precision_for(self.local[k]),  # the full scan's, so both nodes match
                     )
@@ -357,7 +357,7 @@ class SessionViewer:
         array = np.asarray(colours, np.uint8)
         return array[keep] if array.ndim == 2 else array
 
-    def _colours(self, k: int) -> np.ndarray | tuple[int, int, int]:
+    def scan_colours(self, k: int) -> np.ndarray | tuple[int, int, int]:
         if k in self.selected:
             return self.selected[k]
         if k in self.highlight:
@@ -384,7 +384,7 @@ class SessionViewer:
 
     def paint(self, k: int) -> None:
         """Send scan ``k``'s colours; a single colour goes as one RGB triple, not one per point."""
-        colours = np.asarray(self._colours(k), np.uint8)
+        colours = np.asarray(self.scan_colours(k), np.uint8)
         self.nodes[k].colors = colours
         if k in self.light:
             node, keep = self.light[k]
@@ -434,7 +434,7 @@ class SessionViewer:
         node.position = pose[:3, 3]
         node.wxyz = rotation_to_quaternion(pose[:3, :3])
 
-    def _draw_graph(self) -> None:
+    def draw_graph(self) -> None:
         """Trajectory (sequential edges) and loop edges, each coloured by its point-to-plane residual.
 
         The residuals are the editor's per-edge summary (the numbers the "residuals jumped" guardrail
@@ -507,7 +507,7 @@ class SessionViewer:
                             continue  # moved meanwhile: the next request (or a redraw) computes them
                         self.edge_residuals = {(int(e["i"]), int(e["j"])): float(e["plane"]) for e in summary.edges}
                         self.edge_residual_version = version
-                        self._draw_graph()
+                        self.draw_graph()
                 except Exception as exc:
                     if not self.stopped:
                         self.edge_legend.content = f"Edge residuals unavailable: {exc}"
@@ -557,10 +557,10 @@ class SessionViewer:
             self.shown_revision = self.state.session.revision
             if self.colour.value != "scan":
                 self.recolour()
-        self._draw_graph()
+        self.draw_graph()
         self._update_status()
         for panel in self.panels:
-            self._run_safely(panel.refresh)
+            self.run_safely(panel.refresh)
 
     # -------------------------------------------------------------- jobs
 

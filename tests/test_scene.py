@@ -191,7 +191,7 @@ def test_the_view_recolours_an_edge_when_a_scan_moves_off(corridor_view):
     moved = [p.copy() for p in view.poses]
     moved[2] = moved[2] @ pose_from_xyzrpy(0.3, 0.2, 0, 0, 0, 0.05)
     view.set_poses(moved)
-    view._draw_graph()  # what a new revision does
+    view.draw_graph()  # what a new revision does
     after = _edge_colours_when_computed(view)
     assert np.array_equal(after[0], before[0])  # the untouched edge keeps its colour
     position = np.linspace(0, view.edge_scale, 101)  # where on the edge scale each colour sits
@@ -228,7 +228,11 @@ def test_clicking_scans_in_the_view_picks_a_then_b_and_highlights_them(corridor_
     edit._clicked(_Click(camera, centres[0] - camera))
     assert (int(edit.scan_a.value), int(edit.scan_b.value)) == (2, 0)
     assert view.selected == {2: PICKED_A, 0: PICKED_B}
-    assert view._colours(0) == PICKED_B and view._colours(2) == PICKED_A and view._colours(1) == scene.scan_color(1)
+    assert (
+        view.scan_colours(0) == PICKED_B
+        and view.scan_colours(2) == PICKED_A
+        and view.scan_colours(1) == scene.scan_color(1)
+    )
     assert 0 in painted and 2 in painted
     edit._clicked(_Click(camera, (0.0, -1.0, 0.5)))  # away from the map: nothing picked, nothing changed
     assert (int(edit.scan_a.value), int(edit.scan_b.value)) == (2, 0) and "No scan" in edit.pick_status.content

@@ -8,14 +8,16 @@ makes) and draws what comes back. Panels are rebuilt from the journal on every r
 from __future__ import annotations
 
 import threading
-from typing import Any, Protocol
+from typing import Protocol
+
+from app.panels.host import ViewerHost
 
 
 class Panel(Protocol):
     def refresh(self) -> None: ...
 
 
-def build_panels(viewer: Any) -> list[Panel]:
+def build_panels(viewer: ViewerHost) -> list[Panel]:
     from app.panels.edit import EditPanel
     from app.panels.guess import GuessPanel
     from app.panels.loops import LoopsPanel
@@ -27,7 +29,7 @@ def build_panels(viewer: Any) -> list[Panel]:
         viewer.ready.wait()
         if not viewer.error:
             for panel in panels:
-                viewer._run_safely(panel.refresh)
+                viewer.run_safely(panel.refresh)
 
     threading.Thread(target=first_fill, name=f"panels-{viewer.session_id}", daemon=True).start()
     return panels

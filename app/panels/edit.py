@@ -7,6 +7,7 @@ from typing import Any
 import numpy as np
 
 from app.editing import editor_for
+from app.panels.host import ViewerHost
 from slam6d.geometry import make_pose, quaternion_to_rotation, rotation_to_quaternion
 
 _NONE = "—"
@@ -15,7 +16,7 @@ PICKED_B = (255, 60, 200)
 
 
 class EditPanel:
-    def __init__(self, viewer: Any) -> None:
+    def __init__(self, viewer: ViewerHost) -> None:
         self.viewer = viewer
         self.editor = editor_for(viewer.workbench)
         self.session_id = viewer.session_id
@@ -35,7 +36,7 @@ class EditPanel:
             self.commit_move = gui.add_button("Keep dragged pose", disabled=True)
             self.icp_here = gui.add_button("ICP from here", disabled=True)
             self.result = gui.add_markdown("")
-        run = viewer._run_safely
+        run = viewer.run_safely
         viewer.server.scene.on_click()(lambda e: run(lambda: self._clicked(e)))
         self.scan_a.on_update(lambda e: run(lambda: self._typed("A", e)))
         self.scan_b.on_update(lambda e: run(lambda: self._typed("B", e)))

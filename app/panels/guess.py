@@ -8,6 +8,7 @@ import numpy as np
 
 from app import scene
 from app.editing import editor_for
+from app.panels.host import ViewerHost
 from slam6d.geometry import rotation_to_quaternion
 
 _NONE = "—"
@@ -17,7 +18,7 @@ _DATA_CUBES = (255, 120, 0)
 
 
 class GuessPanel:
-    def __init__(self, viewer: Any) -> None:
+    def __init__(self, viewer: ViewerHost) -> None:
         self.viewer = viewer
         self.editor = editor_for(viewer.workbench)
         self.session_id = viewer.session_id
@@ -32,7 +33,7 @@ class GuessPanel:
             self.choice = gui.add_dropdown("Candidate", [_NONE])
             self.apply = gui.add_button("Run ICP from candidate", disabled=True)
             self.show = gui.add_checkbox("Show cubes and candidates", True)
-        run = viewer._run_safely
+        run = viewer.run_safely
         self.search.on_click(lambda _: run(self._search))
         self.level.on_update(lambda _: run(self._search) if self.summary is not None else None)
         self.apply.on_click(lambda e: run(lambda: self._apply(e)))

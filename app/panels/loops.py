@@ -8,12 +8,13 @@ import numpy as np
 
 from app import scene
 from app.editing import displacements, editor_for
+from app.panels.host import ViewerHost
 
 _NONE = "—"
 
 
 class LoopsPanel:
-    def __init__(self, viewer: Any) -> None:
+    def __init__(self, viewer: ViewerHost) -> None:
         self.viewer = viewer
         self.editor = editor_for(viewer.workbench)
         self.session_id = viewer.session_id
@@ -30,7 +31,7 @@ class LoopsPanel:
             self.before = gui.add_checkbox("Show before (parent revision)", False)
             self.by_displacement = gui.add_checkbox("Colour by displacement", False)
             self.legend = gui.add_markdown("")
-        run = viewer._run_safely
+        run = viewer.run_safely
         self.detect.on_click(lambda e: run(lambda: self._submit("detect-loops", self.editor.detect_loops_job, e)))
         self.accept.on_click(lambda e: run(lambda: self._decide(True, e)))
         self.reject.on_click(lambda e: run(lambda: self._decide(False, e)))
@@ -86,7 +87,7 @@ class LoopsPanel:
     def _show_before(self) -> None:
         before, after = self._revisions()
         self.viewer.set_poses(before if self.before.value else after)
-        self.viewer._draw_graph()
+        self.viewer.draw_graph()
 
     def _colour(self) -> None:
         viewer = self.viewer

@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import threading
 import time
-from typing import Any
 
 import numpy as np
 
 from app import traces
+from app.panels.host import ViewerHost
 
 _NONE = "—"
 _DATA = (255, 120, 0)
@@ -16,7 +16,7 @@ _MODEL = (60, 140, 255)
 
 
 class ReplayPanel:
-    def __init__(self, viewer: Any) -> None:
+    def __init__(self, viewer: ViewerHost) -> None:
         self.viewer = viewer
         self.session = viewer.state.session
         self.frames: list[traces.ReplayFrame] = []
@@ -32,7 +32,7 @@ class ReplayPanel:
             self.pause = gui.add_button("Pause replay", disabled=True)
             self.stop = gui.add_button("Back to current revision", disabled=True)
             self.status = gui.add_markdown("")
-        run = viewer._run_safely
+        run = viewer.run_safely
         self.load.on_click(lambda _: run(self._load))
         self.step.on_click(lambda _: run(self._next))
         self.play.on_click(lambda _: run(self._play))
@@ -72,7 +72,7 @@ class ReplayPanel:
         for k in changed | set(viewer.highlight):
             if k < len(viewer.nodes):
                 viewer.nodes[k].colors = np.broadcast_to(
-                    np.array(viewer._colours(k), np.uint8), (len(viewer.local[k]), 3)
+                    np.array(viewer.scan_colours(k), np.uint8), (len(viewer.local[k]), 3)
                 )
         if frame.rms_history:
             h = np.array(frame.rms_history, dtype=np.float64)
