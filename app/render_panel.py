@@ -29,6 +29,7 @@ from pydantic import BaseModel, Field
 
 from app.jobs import JobConflictError, Work
 from app.panels.host import ViewerHost
+from app.panels.progress import show_job_progress
 from app.workbench import UnknownSessionError, Workbench
 from slam6d.camera_path import CameraPath, Keyframe, camera_path_from_dict, trajectory_path
 from slam6d.errors import Slam6dError
@@ -541,14 +542,10 @@ class RenderPanel:
         if job.session_id != self.session_id or job.kind != RENDER_KIND:
             return
         self.job_id = job.id
-        self.render_button.disabled = job.active
-        self.cancel_button.disabled = not job.active
-        self.progress.visible = job.active
-        if job.total:
-            self.progress.value = 100.0 * job.done / job.total
+        show_job_progress(job, self.render_button, self.cancel_button, self.progress, self.render_status, "Rendering")
         if job.active:
-            self.render_status.content = f"{job.stage or 'starting'} {job.done}/{job.total}"
-        elif job.status == "done":
+            return
+        if job.status == "done":
             result = job.result
             self.render_status.content = (
                 f"Rendered {result['frames']} frames {result['width']}x{result['height']} in {result['seconds']:.1f} s"

@@ -18,6 +18,7 @@ import viser
 from app import render_panel, scene
 from app.editing import editor_for
 from app.panels import build_panels
+from app.panels.progress import show_job_progress
 from app.registration import pipeline_config, working_copy
 from app.traces import TraceRecorder
 from app.workbench import Workbench
@@ -575,14 +576,10 @@ class SessionViewer:
             self.workbench.jobs.cancel(job.id)
 
     def on_job(self, job: Any) -> None:
-        self.progress.visible = job.active
-        self.cancel_button.disabled = not job.active
-        self.run_button.disabled = job.active
-        if job.total:
-            self.progress.value = 100.0 * job.done / job.total
+        show_job_progress(job, self.run_button, self.cancel_button, self.progress, self.status, job.kind)
         if job.active:
-            self.status.content = f"{job.kind}: {job.stage} {job.done}/{job.total}"
-        elif job.status == "failed":
+            return
+        if job.status == "failed":
             self.warn(f"{job.kind} failed: {job.message}")
             self._update_status()
         else:
