@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from benchmarks.initial_guess import BUNNY_ICP
 from slam6d.geometry import invert, pose_difference, pose_from_xyzrpy, transform_points
 from slam6d.icp import ICPConfig, icp
 from slam6d.initial_guess import (
@@ -260,16 +261,7 @@ def test_bunny_neighbours_recovered_from_30deg_where_plain_icp_fails(
     # 1 m in a 20 m hall is ~5 % of the scene: the same relative shift for a ~16 cm object
     shift = 0.05 * cloud_extent(model.points)
     start = _perturbed(reference, data.points, (-0.6 * shift, 0.8 * shift, 0.0, 5 * DEG, 5 * DEG, 30 * DEG))
-    # object scale: full-resolution data, 3 mm pairing distance, 1 µm convergence
-    config = ICPConfig(
-        method="point_to_point",
-        max_distance=0.003,
-        max_iterations=100,
-        data_voxel_size=0.0,
-        epsilon=1e-6,
-        stage_epsilon=1e-6,
-    )
-
+    config = BUNNY_ICP  # object scale: full-resolution data, 3 mm pairing distance, 1 µm convergence
     plain = icp(model.points, data.points, start, config)
     plain_error = pose_difference(plain.transform, reference)
     assert plain_error[0] > 0.003 or plain_error[1] > 5 * DEG, "plain ICP should fail from this start"
