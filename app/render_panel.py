@@ -196,7 +196,7 @@ class KeyframeBody(BaseModel):
             raise ValueError("give exactly one of orientation_wxyz and look_at")
         if self.look_at is not None:
             return Keyframe.looking_at(self.position, self.look_at, self.fov_deg)
-        return Keyframe(self.position, self.orientation_wxyz, self.fov_deg)
+        return Keyframe(np.asarray(self.position, float), np.asarray(self.orientation_wxyz, float), self.fov_deg)
 
 
 class KeyframeList(BaseModel):
@@ -360,7 +360,11 @@ class RenderPanel:
         self.show_path.on_update(lambda _: self._safely(self.draw))
         self.fly_button.on_click(lambda e: self._safely(lambda: self._fly(e)))
         self.render_button.on_click(lambda e: self._safely(lambda: self._render(e)))
-        self.cancel_button.on_click(lambda _: self.job_id and self.workbench.jobs.cancel(self.job_id))
+        self.cancel_button.on_click(lambda _: self._cancel())
+
+    def _cancel(self) -> None:
+        if self.job_id:
+            self.workbench.jobs.cancel(self.job_id)
 
     def _safely(self, action: Any) -> None:
         try:
@@ -398,7 +402,7 @@ class RenderPanel:
             keyframes.insert(target, keyframes.pop(index))
         save_keyframes(self.session, keyframes, self.viewer.author(event))
         if target >= 0:
-            self.selected.value = str(target + 1)  # the moved keyframe stays selected
+            self.selected.value = str(target + 1)  # type: ignore[misc]  # the moved keyframe stays selected
 
     @staticmethod
     def _labels(count: int) -> tuple[str, ...]:
@@ -421,7 +425,7 @@ class RenderPanel:
         labels = self._labels(len(keyframes))
         previous = self.selected.value
         self.selected.options = labels or ("–",)
-        self.selected.value = previous if previous in labels else (labels[-1] if labels else "–")
+        self.selected.value = previous if previous in labels else (labels[-1] if labels else "–")  # type: ignore[misc]
         self.selected.disabled = not labels
         rows = [
             f"| {i + 1} | {k.position[0]:.1f}, {k.position[1]:.1f}, {k.position[2]:.1f} | {k.fov_deg:.0f}° |"

@@ -122,6 +122,12 @@ def scan_color(index: int) -> tuple[int, int, int]:
     return int(r * 255), int(g * 255), int(b * 255)
 
 
+def rgb(colour: NDArray[np.uint8]) -> tuple[int, int, int]:
+    """One row of a colour array as the plain-int triple viser's handles take for a single colour."""
+    r, g, b = (int(c) for c in colour)
+    return r, g, b
+
+
 def ramp(values: NDArray[np.float64], low: float, high: float) -> NDArray[np.uint8]:
     """Map values to the colour ramp; NaN becomes grey (no data)."""
     span = high - low if high > low else 1.0

@@ -29,7 +29,7 @@ _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,99}$")
 def compact_event(event: Any) -> dict[str, Any]:
     """One pipeline event as JSON with its type name; heavy parts replaced by what a replay needs."""
     kind = type(event).__name__
-    data = {"type": kind}
+    data: dict[str, Any] = {"type": kind}
     if kind == "ScanStarted":
         guess = event.guess
         data.update(

@@ -139,7 +139,7 @@ class SessionViewer:
         self.step_button.on_click(lambda e: self.run_safely(lambda: self._stepper(self.author(e)).step()))
         self.next_scan_button.on_click(lambda e: self.run_safely(lambda: self._stepper(self.author(e)).next_scan()))
         self.play_button.on_click(lambda e: self.run_safely(lambda: self._stepper(self.author(e)).play()))
-        self.pause_button.on_click(lambda _: self.stepper and self.stepper.pause())
+        self.pause_button.on_click(lambda _: self._pause())
 
     def _on_connect(self, client: viser.ClientHandle) -> None:
         # Each browser has its own name field, so the journal records who pressed a button.
@@ -168,12 +168,12 @@ class SessionViewer:
     def _load(self) -> None:
         try:
             sequence = self.state.sequence(lambda d, t: self._progress("Reading scans", d, t))
-            self.budget.value = int(self.state.session.config.engine.get("display_budget", scene.DEFAULT_BUDGET))
+            self.budget.value = int(self.state.session.config.engine.get("display_budget", scene.DEFAULT_BUDGET))  # type: ignore[misc]
             poses = sequence.poses()
             lo = np.min([p[:3, 3] for p in poses], axis=0)
             hi = np.max([p[:3, 3] for p in poses], axis=0)
             centre = (lo + hi) / 2
-            size = float(max(np.linalg.norm(hi - lo), 20.0))
+            size = max(float(np.linalg.norm(hi - lo)), 20.0)
             self.server.initial_camera.look_at = centre
             self.server.initial_camera.position = centre + np.array([-0.4, -0.6, 0.7]) * size
             self._rebuild_scans()
@@ -188,7 +188,7 @@ class SessionViewer:
             self.ready.set()
 
     def _progress(self, stage: str, done: int, total: int) -> None:
-        self.progress.value = 100.0 * done / max(total, 1)
+        self.progress.value = 100.0 * done / max(total, 1)  # type: ignore[misc]
         self.status.content = f"{stage}… {done}/{total}"
 
     def _rebuild_scans(self) -> None:
@@ -471,7 +471,7 @@ class SessionViewer:
                         self.server.scene.add_line_segments(
                             f"{name}/{b}",
                             segments[np.asarray(which).reshape(-1) == b],
-                            colors=tuple(int(c) for c in shade),
+                            colors=scene.rgb(shade),
                             thickness=thickness,
                             thickness_units="screen",
                             position=origin,
@@ -586,6 +586,10 @@ class SessionViewer:
             # an edit's guardrail (e.g. residuals jumped) stays visible after the job
             self.warn((job.result.get("warning") or "") if job.status == "done" else f"{job.kind} {job.status}")
             self._update_status()
+
+    def _pause(self) -> None:
+        if self.stepper is not None:
+            self.stepper.pause()
 
     def _stepper(self, author: str) -> Stepper:
         if self.stepper is None or self.stepper.finished:

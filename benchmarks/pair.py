@@ -26,6 +26,7 @@ import statistics
 import sys
 import time
 from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -132,7 +133,7 @@ def open3d_method(kind: str) -> Registration:
         source = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(data))
         if kind == "plane":
             target.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=0.3, max_nn=20))
-            estimation = reg.TransformationEstimationPointToPlane()
+            estimation: reg.TransformationEstimation = reg.TransformationEstimationPointToPlane()
         else:
             estimation = reg.TransformationEstimationPointToPoint()
         criteria = reg.ICPConvergenceCriteria(max_iteration=50)
@@ -216,10 +217,10 @@ def nn_table(runs: int) -> None:
                 samples.append(time.perf_counter() - start)
             return statistics.median(samples) * 1e3
 
-        build = timed(lambda name=name: nn.build_index(model, name, THREADS))
+        build = timed(partial(nn.build_index, model, name, THREADS))
         index = nn.build_index(model, name, THREADS)
-        nearest = timed(lambda index=index: index.nearest(queries, 0.25))
-        knn = timed(lambda index=index: index.knn(queries, 12))
+        nearest = timed(partial(index.nearest, queries, 0.25))
+        knn = timed(partial(index.knn, queries, 12))
         print(f"{name:12s} {build:8.1f} {nearest:17.1f} {knn:9.1f}")
 
 

@@ -17,6 +17,7 @@ import statistics
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 # what `slam6d` and the workbench do at start (see slam6d.cli.main); override by setting it
@@ -83,7 +84,7 @@ def numpy_zbuffer(points: np.ndarray, colors: np.ndarray, camera: Camera) -> np.
     return image
 
 
-def measure(render_one, cameras: list[Camera], passes: int) -> tuple[float, float, float]:
+def measure(render_one: Callable[[Camera], object], cameras: list[Camera], passes: int) -> tuple[float, float, float]:
     """(best, median) frames per second over ``passes`` runs along the path, and the least CPU ms per frame.
 
     CPU time (all threads) is the figure least disturbed by other processes on a shared machine.

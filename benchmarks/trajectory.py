@@ -27,6 +27,7 @@ import sys
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -207,7 +208,7 @@ def _gicp(target, source, init: Matrix, threads: int = 2):  # type: ignore[no-un
     return small_gicp.align(target[0], source[0], target[1], init_T_target_source=init, num_threads=threads)
 
 
-def _gicp_clouds(clouds: Sequence[np.ndarray]) -> list:  # type: ignore[type-arg]
+def _gicp_clouds(clouds: Sequence[np.ndarray]) -> list[Any]:
     import small_gicp
 
     return [small_gicp.preprocess_points(c, downsampling_resolution=0.25, num_threads=2) for c in clouds]

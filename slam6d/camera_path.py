@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 from scipy.interpolate import CubicSpline
 from scipy.spatial.transform import Rotation, RotationSpline
 
@@ -61,7 +61,7 @@ class Keyframe:
         return cls(pose[:3, 3], rotation_to_quaternion(pose[:3, :3]), fov_deg)
 
     @classmethod
-    def looking_at(cls, eye: Sequence[float], target: Sequence[float], fov_deg: float = 60.0) -> Keyframe:
+    def looking_at(cls, eye: ArrayLike, target: ArrayLike, fov_deg: float = 60.0) -> Keyframe:
         return cls.from_pose(look_at(eye, target), fov_deg)
 
     def pose(self) -> Matrix:

@@ -312,20 +312,16 @@ def run(
     with ThreadPoolExecutor(1) as pool:
         configured = pool.submit(make_config)
 
-        def stop_on_bad_options() -> None:
-            if configured.done() and configured.exception() is not None:
-                raise _BadOptions
-
         try:
             with progress_bar("reading scans") as update:
+
+                def read_progress(done: int, total: int) -> None:
+                    update(done, total)
+                    if configured.done() and configured.exception() is not None:
+                        raise _BadOptions
+
                 sequence = read_sequence(
-                    source,
-                    fmt,
-                    ReadOptions(min_range, max_range),
-                    first,
-                    last,
-                    poses,
-                    progress=lambda done, total: (update(done, total), stop_on_bad_options()),
+                    source, fmt, ReadOptions(min_range, max_range), first, last, poses, progress=read_progress
                 )
         except _BadOptions:
             pass
@@ -342,7 +338,7 @@ def run(
     paths = write_results(pipeline, out, {"read_seconds": read_seconds, "wall_seconds": time.perf_counter() - began})
     closed = ", ".join(f"{i}-{j}" for i, j in report.loops_closed) or "none"
     typer.echo(f"{len(sequence)} scans registered; loops closed: {closed}")
-    if report.residual_before is not None:
+    if report.residual_before is not None and report.residual_after is not None:
         typer.echo(
             f"relaxation ({report.relaxation}): point-to-plane RMS {100 * report.residual_before:.2f} -> "
             f"{100 * report.residual_after:.2f} cm over {report.neighbour_pairs} neighbour pairs"

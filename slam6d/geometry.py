@@ -16,7 +16,7 @@ from numpy.typing import ArrayLike, NDArray
 Matrix = NDArray[np.float64]
 
 
-def make_pose(rotation: Matrix, translation: Matrix) -> Matrix:
+def make_pose(rotation: ArrayLike, translation: ArrayLike) -> Matrix:
     """Assemble a 4x4 pose from a 3x3 rotation and a 3-vector."""
     pose = np.eye(4)
     pose[:3, :3] = rotation
@@ -122,9 +122,10 @@ def rotation_to_quaternion(rotation: Matrix) -> Matrix:
     return q if q[0] >= 0.0 else -q
 
 
-def quaternion_to_rotation(q: Matrix) -> Matrix:
+def quaternion_to_rotation(q: ArrayLike) -> Matrix:
     """Rotation matrix of a quaternion (w, x, y, z); the quaternion need not be normalised."""
-    w, x, y, z = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
+    quaternion = np.asarray(q, dtype=np.float64)
+    w, x, y, z = quaternion / np.linalg.norm(quaternion)
     return np.array(
         [
             [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
@@ -204,13 +205,13 @@ def look_at(eye: ArrayLike, target: ArrayLike, up: ArrayLike = (0.0, 0.0, 1.0)) 
     """
     eye_v = np.asarray(eye, dtype=np.float64)
     forward = np.asarray(target, dtype=np.float64) - eye_v
-    norm = np.linalg.norm(forward)
+    norm = float(np.linalg.norm(forward))
     if norm < 1e-12:
         raise ValueError("look_at: eye and target coincide")
     forward /= norm
     up_v = np.asarray(up, dtype=np.float64)
     right = np.cross(forward, up_v)
-    if np.linalg.norm(right) < 1e-9 * max(np.linalg.norm(up_v), 1e-300):
+    if np.linalg.norm(right) < 1e-9 * max(float(np.linalg.norm(up_v)), 1e-300):
         helper = np.array([1.0, 0.0, 0.0]) if abs(forward[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
         right = np.cross(forward, helper)
     right /= np.linalg.norm(right)

@@ -349,7 +349,7 @@ class _numba_threads:  # noqa: N801 - used like a function in a with-statement
     """Bound numba's parallel kernels to ``threads`` for the duration of a block (thread-local in numba)."""
 
     def __init__(self, threads: int) -> None:
-        self.threads = max(1, min(int(threads), numba.config.NUMBA_NUM_THREADS))
+        self.threads = max(1, min(int(threads), numba.config.NUMBA_NUM_THREADS))  # type: ignore[attr-defined]
 
     def __enter__(self) -> None:
         self.previous = numba.get_num_threads()

@@ -383,19 +383,14 @@ def octree_guess(
     config is used as given. ``progress(done, total)`` is called after each level.
     """
     began = time.perf_counter()
-    if isinstance(model_points, Octree):
-        tree = model_points
-    else:
-        tree = None
-        model_points = as_points(model_points, "model points")
+    model = model_points.points if isinstance(model_points, Octree) else as_points(model_points, "model points")
     data_points = as_points(data_points, "data points")
     initial = np.asarray(initial, dtype=np.float64)
     if initial.shape != (4, 4) or not np.all(np.isfinite(initial)):
         raise ValueError(f"initial must be a finite 4x4 transform, got shape {initial.shape}")
     if config is None:
-        config = config_for(tree.points if tree is not None else model_points)
-    if tree is None:
-        tree = Octree(model_points, leaf_size=config.cube_sizes[-1])
+        config = config_for(model)
+    tree = model_points if isinstance(model_points, Octree) else Octree(model, leaf_size=config.cube_sizes[-1])
 
     levels: list[SearchLevel] = []
     current = initial

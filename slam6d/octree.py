@@ -146,9 +146,9 @@ def _closest_per_cell(points: FloatArray, lower: FloatArray, voxel_size: float, 
             slots[slot, 1] = i
             best_dist[slot] = dist
     keep = np.zeros(points.shape[0], dtype=np.bool_)
-    for slot in range(size):
-        if slots[slot, 1] >= 0:
-            keep[slots[slot, 1]] = True
+    for kept in range(size):
+        if slots[kept, 1] >= 0:
+            keep[slots[kept, 1]] = True
     return keep
 
 

@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import os
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Generator, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -49,7 +49,7 @@ from slam6d.loops import (
     verify,
 )
 from slam6d.octree import Occupancy, Octree, reduce_points
-from slam6d.pair import MIN_FITNESS, better_fit, is_poor
+from slam6d.pair import MIN_FITNESS, Outcome, better_fit, is_poor
 from slam6d.relax import (
     Cancelled,
     RelaxationConfig,
@@ -475,7 +475,9 @@ class Pipeline:
         result.transform = prev @ result.transform
         return result
 
-    def _run_icp(self, index: int, model: ModelIndex, world_from_model: Matrix, start_world: Matrix) -> Iterator[Event]:
+    def _run_icp(
+        self, index: int, model: ModelIndex, world_from_model: Matrix, start_world: Matrix
+    ) -> Generator[Event, None, Outcome]:
         """Yield one event per ICP iteration; the generator's return value is the ICPResult (or the error)."""
         data = self._data_points(index)
         model_from_world = invert(world_from_model)
@@ -537,7 +539,7 @@ class Pipeline:
             candidates = find_loop_hypotheses(
                 self.poses[: j + 1], max_range, cfg, self._occupancy_of, self.models.points, last_only=1
             )
-            tried = []
+            tried: list[LoopHypothesis] = []
             for hyp in candidates:
                 if hyp.reason or len(tried) >= cfg.candidates_per_scan:
                     break

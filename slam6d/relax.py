@@ -252,7 +252,7 @@ def _gathered(models: ScanModels, others: Sequence[int], counts: Sequence[int]) 
     return np.concatenate(own), np.repeat(np.arange(len(others)), [len(d) for d in own])
 
 
-def _relative(poses: Sequence[Matrix], i: int, others: Sequence[int]) -> FloatArray:
+def _relative(poses: Sequence[Matrix], i: int, others: Sequence[int] | NDArray[np.int64]) -> FloatArray:
     """inv(X_i) X_j for every j in ``others``, stacked."""
     return np.matmul(invert(poses[i]), np.stack([poses[j] for j in others]))
 

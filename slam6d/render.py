@@ -315,7 +315,7 @@ _FAR_LOG = np.float32(1.0e30)  # log depth of an empty pixel: finite, so fastmat
 
 
 @njit(parallel=True, fastmath=True, cache=True)
-def _block_spheres(points, block):  # pragma: no cover
+def _block_spheres(points, block):  # type: ignore[no-untyped-def]  # pragma: no cover
     """Bounding sphere (centre, radius) of every run of ``block`` consecutive points."""
     n = points.shape[0]
     count = (n + block - 1) // block
@@ -339,7 +339,7 @@ def _block_spheres(points, block):  # pragma: no cover
 
 
 @njit(parallel=True, fastmath=True, cache=True)
-def _splat_kernel(
+def _splat_kernel(  # type: ignore[no-untyped-def]
     points, centres, radii, block, rot, trans, fx, fy, cx, cy, near, size_scale, max_size, planes, buffers
 ):  # pragma: no cover
     """Splat points into per-chunk z-buffers of packed (depth, index) keys.
@@ -413,7 +413,7 @@ def _splat_kernel(
 
 
 @njit(parallel=True, fastmath=True, cache=True)
-def _resolve_kernel(buffers, pad, depth, log_depth, index):  # pragma: no cover
+def _resolve_kernel(buffers, pad, depth, log_depth, index):  # type: ignore[no-untyped-def]  # pragma: no cover
     """Per-pixel minimum over the chunk buffers -> depth (inf if empty), point index (-1), and log2 depth
     into the interior of ``log_depth``, whose ``pad``-wide border stays empty so EDL needs no bounds checks.
     Leaves the chunk buffers empty again, so the splat pass needs no separate clearing sweep."""
@@ -448,7 +448,7 @@ _EXP_LUT[-1] = 0.0
 
 
 @njit(parallel=True, fastmath=True, cache=True)
-def _shade_kernel(
+def _shade_kernel(  # type: ignore[no-untyped-def]
     depth, log_depth, pad, index, colors, background, edl_strength, edl_offsets, fog_distance, exp_lut, steps, image
 ):  # pragma: no cover
     """Colour every pixel: point colour x EDL factor, faded towards the background by depth fog.

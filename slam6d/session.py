@@ -277,7 +277,7 @@ class Session:
         sequence = ScanSequence(scans, self.config.convention, self.source_paths()[0], self.config.format_name)
         cache.parent.mkdir(exist_ok=True)
         tmp = cache.with_suffix(".tmp.npz")
-        np.savez(tmp, fingerprint=np.array(fingerprint), **_sequence_to_arrays(sequence))
+        np.savez(tmp, fingerprint=np.array(fingerprint), **_sequence_to_arrays(sequence))  # type: ignore[arg-type]
         tmp.replace(cache)
         return sequence
 
@@ -541,7 +541,7 @@ def _sequence_to_arrays(sequence: ScanSequence) -> dict[str, np.ndarray]:
     # float32 is ample in each scanner's own frame (sub-micrometre at 100 m) and halves the cache.
     points = np.concatenate([s.points for s in sequence.scans]).astype(np.float32)
     has_intensity = all(s.intensity is not None for s in sequence.scans)
-    arrays = {
+    arrays: dict[str, np.ndarray] = {
         "counts": counts,
         "points": points,
         "poses": np.stack([s.pose for s in sequence.scans]),
@@ -550,7 +550,7 @@ def _sequence_to_arrays(sequence: ScanSequence) -> dict[str, np.ndarray]:
         "files": np.array([str(s.source or "") for s in sequence.scans]),
     }
     if has_intensity:
-        arrays["intensity"] = np.concatenate([s.intensity for s in sequence.scans])  # type: ignore[misc]
+        arrays["intensity"] = np.concatenate([s.intensity for s in sequence.scans if s.intensity is not None])
     return arrays
 
 

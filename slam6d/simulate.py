@@ -265,11 +265,11 @@ class Scene:
         """Distance to the first surface along each unit direction (inf for no hit)."""
         if self._caster is None:
             self._caster = o3d.t.geometry.RaycastingScene()
-            self._caster.add_triangles(o3d.core.Tensor(self.vertices), o3d.core.Tensor(self.triangles))
+            self._caster.add_triangles(o3d.core.Tensor(self.vertices), o3d.core.Tensor(self.triangles))  # type: ignore[call-overload]
         rays = np.empty((len(directions), 6), dtype=np.float32)
         rays[:, :3] = origin
         rays[:, 3:] = directions
-        return self._caster.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy().astype(np.float64)
+        return self._caster.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy().astype(np.float64)  # type: ignore[call-overload]
 
 
 Circle = tuple[float, float, float]  # x, y, radius of a footprint part

@@ -32,7 +32,9 @@ def true_poses(scans: int) -> list[np.ndarray]:
     return [pose_from_xyzrpy(2.0 * k, 0.1 * np.sin(k), 0.0, 0.0, 0.0, 0.05 * k) for k in range(scans)]
 
 
-def write_corridor_scans(folder: Path, scans: int = 4, points: int = 3000, seed: int = 0, odometry_noise=0.0) -> None:
+def write_corridor_scans(
+    folder: Path, scans: int = 4, points: int = 3000, seed: int = 0, odometry_noise: float = 0.0
+) -> None:
     """Write ``scans`` uos scans of the corridor; odometry poses are the true ones plus noise."""
     rng = np.random.default_rng(seed)
     world = corridor_points(rng, points * scans)

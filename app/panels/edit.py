@@ -58,7 +58,7 @@ class EditPanel:
         which, self.next_pick = self.next_pick, "B" if self.next_pick == "A" else "A"
         self.chosen.add(which)
         field = self.scan_a if which == "A" else self.scan_b
-        field.value = k
+        field.value = k  # type: ignore[misc]
         self._highlight()
         name = self.viewer.state.sequence().scans[k].name
         self.pick_status.content = (
@@ -124,7 +124,7 @@ class EditPanel:
             raise ValueError("turn on 'Drag scan A' first")
         k = int(self.scan_a.value)
         out = self.editor.move_scan(self.session_id, k, self._gizmo_pose(), self.viewer.author(event), refine)
-        self.drag.value = False
+        self.drag.value = False  # type: ignore[misc]
         self.result.content = (
             f"scan {k} {'matched from the dragged place' if refine else 'moved'}: residual RMS "
             f"{out['residual_before']['rms']:.3f} → {out['residual_after']['rms']:.3f} m, revision {out['revision']}"
@@ -136,6 +136,6 @@ class EditPanel:
         options = [f"{e['k']}: {e['i']}–{e['j']} {e['kind']}" for e in edges] or [_NONE]
         previous = self.edge.value
         self.edge.options = options
-        self.edge.value = previous if previous in options else options[0]
+        self.edge.value = previous if previous in options else options[0]  # type: ignore[misc]
         count = len(self.viewer.workbench.current_poses(self.session_id))
         self.scan_a.max = self.scan_b.max = max(count - 1, 0)

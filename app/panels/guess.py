@@ -98,7 +98,7 @@ class GuessPanel:
                     axes_length=1.2 if c["winner"] else 0.6,
                     axes_radius=0.04 if c["winner"] else 0.015,
                     origin_radius=0.12 if c["winner"] else 0.06,
-                    origin_color=tuple(int(v) for v in colour),
+                    origin_color=scene.rgb(colour),
                     position=pose[:3, 3],
                     wxyz=rotation_to_quaternion(pose[:3, :3]),
                 )

@@ -73,7 +73,7 @@ class LoopsPanel:
             options = [f"{h['k']}: scans {h['i']}–{h['j']} ({h['status']})" for h in listed]
             previous = self.choice.value.split(":")[0]
             self.choice.options = options
-            self.choice.value = next((o for o in options if o.split(":")[0] == previous), options[0])
+            self.choice.value = next((o for o in options if o.split(":")[0] == previous), options[0])  # type: ignore[misc]
         if self.before.value or self.by_displacement.value:
             self._show_before()
             self._colour()
@@ -98,6 +98,6 @@ class LoopsPanel:
             moved = np.array(displacements(*self._revisions()))
             top = float(moved.max()) if len(moved) and moved.max() > 0 else 1.0
             colours = scene.ramp(moved, 0.0, top)
-            viewer.highlight = {k: tuple(int(c) for c in colours[k]) for k in range(len(moved))}
+            viewer.highlight = {k: scene.rgb(colours[k]) for k in range(len(moved))}
             self.legend.content = f"Displacement since the parent revision: blue 0 m → red {top:.2f} m"
         viewer.recolour()

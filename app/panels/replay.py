@@ -43,7 +43,7 @@ class ReplayPanel:
         names = [t["name"] for t in traces.list_traces(self.session)] or [_NONE]
         previous = self.trace.value
         self.trace.options = names
-        self.trace.value = previous if previous in names else names[-1]
+        self.trace.value = previous if previous in names else names[-1]  # type: ignore[misc]
 
     def _load(self) -> None:
         if self.trace.value == _NONE:

@@ -147,7 +147,7 @@ def listed_poses(suffix: str) -> Callable[[Path, list[Path]], list[Matrix] | Non
         entries = find_list_for(directory, suffix)
         if entries is None or any(pose is None for _, pose in entries):
             return None
-        by_file = {p.resolve(): pose for p, pose in entries}
+        by_file = {p.resolve(): pose for p, pose in entries if pose is not None}
         if not all(f.resolve() in by_file for f in files):
             return None
         return [by_file[f.resolve()] for f in files]

@@ -55,14 +55,15 @@ def read_e57(path: Path) -> CloudData:
         raise FormatError(path, f"cannot read as E57: {reason}") from None
     reference = poses[0]
     to_first = invert(reference if reference is not None else np.eye(4))
-    parts, intensities = [], []
+    parts: list[NDArray[np.float64]] = []
+    intensities: list[NDArray[np.float32] | None] = []
     for index, ((points, intensity), pose) in enumerate(zip(clouds, poses, strict=True)):
         if index > 0:  # a scan without a pose sits at the file's origin
             points = transform_points(to_first @ (pose if pose is not None else np.eye(4)), points)
         parts.append(points)
         intensities.append(intensity)
-    has_intensity = all(i is not None for i in intensities)
-    merged_intensity = np.concatenate(intensities) if has_intensity else None  # type: ignore[arg-type]
+    known = [i for i in intensities if i is not None]
+    merged_intensity = np.concatenate(known) if len(known) == len(intensities) else None
     return CloudData(np.concatenate(parts), merged_intensity, reference)
 
 

@@ -124,11 +124,11 @@ def _records(path: Path, raw: bytes, header: PcdHeader) -> np.ndarray:
                 header.header_lines + rows.shape[0] + 1,
             )
         records = np.zeros(header.points, dtype=dtype)
-        column = 0
+        first = 0
         for name in dtype.names or ():
             width = int(np.prod(dtype[name].shape)) if dtype[name].shape else 1
-            records[name] = rows[:, column : column + width].reshape(records[name].shape)
-            column += width
+            records[name] = rows[:, first : first + width].reshape(records[name].shape)
+            first += width
         return records
     needed = header.points * dtype.itemsize
     if header.data == "binary":

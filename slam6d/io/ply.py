@@ -38,7 +38,8 @@ _TYPES = {
     "double": "f8",
     "float64": "f8",
 }
-_ENCODINGS = {"ascii": None, "binary_little_endian": "<", "binary_big_endian": ">"}
+_BYTE_ORDERS = {"binary_little_endian": "<", "binary_big_endian": ">"}
+_ENCODINGS = ("ascii", *_BYTE_ORDERS)
 INTENSITY_NAMES = ("intensity", "scalar_intensity", "reflectance", "remission")
 
 
@@ -152,7 +153,7 @@ def _read_ascii(path: Path, raw: bytes, header: PlyHeader, index: int, vertex: P
 
 
 def _read_binary(path: Path, raw: bytes, header: PlyHeader, index: int, vertex: PlyElement) -> np.ndarray:
-    order = _ENCODINGS[header.encoding]
+    order = _BYTE_ORDERS[header.encoding]
     offset = header.body_offset
     for element in header.elements[:index]:
         if element.has_lists:

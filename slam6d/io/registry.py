@@ -114,7 +114,7 @@ def clean_points(path: Path, cloud: CloudData, options: ReadOptions) -> CloudDat
     ranged = options.min_range is not None or options.max_range is not None
     if np.isfinite(points).all() and not ranged:
         return CloudData(points, cloud.intensity, cloud.pose)  # the usual case: nothing to drop, no copy
-    finite = np.isfinite(points).all(axis=1)
+    finite = np.asarray(np.isfinite(points).all(axis=1))
     dropped = int((~finite).sum())
     if dropped:
         warnings.warn(f"{path}: dropped {dropped} NaN/inf point(s)", NonFinitePointsWarning, stacklevel=3)

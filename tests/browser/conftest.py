@@ -14,6 +14,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -73,7 +74,7 @@ class LiveServer:
 
 
 @pytest.fixture
-def corridor_sessions(tmp_path) -> Path:
+def corridor_sessions(tmp_path: Path) -> Path:
     """A small 6-scan session (fast to load) in a fresh sessions folder."""
     root = tmp_path / "sessions"
     corridor_session(root, scans=6, points=8000, odometry_noise=0.15, engine={"voxel_size": 0.1})
@@ -81,7 +82,7 @@ def corridor_sessions(tmp_path) -> Path:
 
 
 @pytest.fixture
-def demo_sessions(tmp_path) -> Path:
+def demo_sessions(tmp_path: Path) -> Path:
     """The bundled demo session's scans behind a session folder of its own (the repo's journal stays untouched)."""
     bundled = PROJECT_ROOT / "sessions" / "demo"
     if not (bundled / "scans").is_dir():
@@ -115,14 +116,14 @@ def live_server() -> Iterator[Callable[[Path], LiveServer]]:
 
 
 @pytest.fixture
-def new_browser(tmp_path) -> Iterator[Callable[[], object]]:
+def new_browser(tmp_path: Path) -> Iterator[Callable[[], object]]:
     """``new_browser()`` -> a Playwright page in a fresh Chromium profile (call twice for two users)."""
     if not CHROMIUM.exists():
         pytest.fail(f"{CHROMIUM} not found: install Debian's chromium (make system-deps)")
     from playwright.sync_api import sync_playwright
 
     playwright = sync_playwright().start()
-    contexts = []
+    contexts: list[Any] = []
 
     def open_page():  # type: ignore[no-untyped-def]
         profile = tmp_path / f"profile-{len(contexts)}"
