@@ -56,14 +56,16 @@ run: $(STAMP) bytecode kernels
 
 test: $(STAMP) bytecode kernels
 	$(BIN)/ruff check .
+	$(BIN)/mypy
 	$(BIN)/python -m pytest
 
 lint: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
+	$(BIN)/mypy
 
 bench: $(STAMP) bytecode kernels
 	$(BIN)/python benchmarks/pair.py
 
 clean:
-	rm -rf $(VENV) build *.egg-info .pytest_cache test-artifacts
+	rm -rf $(VENV) build *.egg-info .pytest_cache .mypy_cache test-artifacts
