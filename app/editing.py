@@ -35,9 +35,10 @@ from app.registration import hypotheses_entry, pipeline_config
 from app.workbench import EditError
 from slam6d.errors import RegistrationError
 from slam6d.geometry import Matrix, invert, transform_points
-from slam6d.icp import FloatArray, ICPConfig, ModelIndex, icp
+from slam6d.icp import FloatArray, ICPConfig, icp
 from slam6d.initial_guess import GuessResult, OctreeSearchConfig, config_for, octree_guess
 from slam6d.loops import LoopHypothesis, diffuse_loop_correction, find_loop_hypotheses, loop_correction, verify
+from slam6d.model import ModelIndex
 from slam6d.octree import Octree, reduce_points
 from slam6d.posegraph import RelaxationError, check_connected, optimize_pose_graph
 from slam6d.relax import NeighbourPair, RelaxationConfig, ScanModels, UnionIndex, match_edge, simultaneous_matching

@@ -36,9 +36,10 @@ sys.path.insert(0, str(ROOT))
 
 from slam6d import nn  # noqa: E402
 from slam6d.geometry import invert, pose_difference, pose_from_xyzrpy, transform_points  # noqa: E402
-from slam6d.icp import ICPConfig, ModelIndex, icp  # noqa: E402
+from slam6d.icp import ICPConfig, icp  # noqa: E402
 from slam6d.io.kitti import read_kitti_bin  # noqa: E402
 from slam6d.io.poses import read_kitti_poses  # noqa: E402
+from slam6d.model import ModelIndex  # noqa: E402
 
 THREADS = 2
 MAX_DISTANCE = ICPConfig.max_distance  # every method pairs points up to the paper's 25 cm

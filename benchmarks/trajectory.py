@@ -41,10 +41,11 @@ from slam6d.geometry import (
     rotation_to_quaternion,
     transform_points,
 )
-from slam6d.icp import ICPConfig, ModelIndex, icp
+from slam6d.icp import ICPConfig, icp
 from slam6d.io.poses import read_kitti_poses
 from slam6d.io.registry import read_sequence
 from slam6d.metrics import absolute_trajectory_error, relative_pose_error
+from slam6d.model import ModelIndex
 from slam6d.octree import reduce_points
 from slam6d.pipeline import Pipeline, PipelineConfig
 

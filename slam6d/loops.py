@@ -42,7 +42,8 @@ from slam6d.geometry import (
     slerp,
     transform_points,
 )
-from slam6d.icp import ICPConfig, ModelIndex, icp
+from slam6d.icp import ICPConfig, icp
+from slam6d.model import ModelIndex
 from slam6d.octree import Occupancy
 
 FloatArray = NDArray[np.float64]

@@ -37,7 +37,7 @@ import numpy as np
 
 from slam6d.errors import RegistrationError, Slam6dError
 from slam6d.geometry import Matrix, invert
-from slam6d.icp import ICPConfig, ICPIteration, ICPResult, ModelIndex, StackedModel, icp_iterations
+from slam6d.icp import ICPConfig, ICPIteration, ICPResult, icp_iterations
 from slam6d.initial_guess import GuessResult, OctreeSearchConfig, extrapolate_odometry, octree_guess
 from slam6d.io.frames import FrameType, write_sequence_frames
 from slam6d.loops import (
@@ -48,6 +48,7 @@ from slam6d.loops import (
     loop_correction,
     verify,
 )
+from slam6d.model import ModelIndex, StackedModel
 from slam6d.octree import Occupancy, Octree, reduce_points
 from slam6d.pair import MIN_FITNESS, Outcome, better_fit, is_poor
 from slam6d.relax import (
@@ -95,7 +96,7 @@ class PipelineConfig:
     ``data_voxel_size`` thins the scan being registered (one real point per voxel) while the model
     keeps ``voxel_size``: matching cost follows the data points, accuracy mostly the model's density.
     ``normal_cell_voxels`` > 0 gives sequential registration per-cube normals over cubes of that many
-    ``voxel_size`` (:func:`slam6d.icp.cell_normals`, about ten times cheaper than k-NN normals, which
+    ``voxel_size`` (:func:`slam6d.normals.cell_normals`, about ten times cheaper than k-NN normals, which
     loop verification and relaxation keep, and which fill in where a cube gives none); 0 uses k-NN
     normals there too. With per-cube normals, data points are paired with the model reduced further,
     to one point per cube of ``sample_voxels`` x ``voxel_size`` (0 = every model point): the plane,

@@ -47,7 +47,8 @@ from numpy.typing import NDArray
 from slam6d import nn
 from slam6d.errors import RegistrationError, Slam6dError
 from slam6d.geometry import Matrix, invert, make_pose, transform_points
-from slam6d.icp import ICPConfig, ModelIndex, correspondences, icp
+from slam6d.icp import ICPConfig, correspondences, icp
+from slam6d.model import ModelIndex
 from slam6d.posegraph import (
     BlockSystem,
     PoseEdge,

@@ -10,16 +10,10 @@ import pytest
 
 from slam6d.errors import RegistrationError
 from slam6d.geometry import invert, make_pose, pose_difference, pose_from_xyzrpy, rot_z, transform_points
-from slam6d.icp import (
-    ICPConfig,
-    ModelIndex,
-    correspondences,
-    count_pairs,
-    estimate_normals,
-    icp,
-    icp_iterations,
-)
+from slam6d.icp import ICPConfig, correspondences, count_pairs, icp, icp_iterations
+from slam6d.model import ModelIndex
 from slam6d.nn import build_index
+from slam6d.normals import estimate_normals
 from slam6d.trace import to_jsonable
 
 METHODS = ["point_to_point", "point_to_plane"]

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from slam6d.geometry import invert, make_pose, pose_difference, pose_from_xyzrpy, rotation_angle
-from slam6d.icp import ICPConfig, ModelIndex
+from slam6d.icp import ICPConfig
 from slam6d.loops import (
     LoopConfig,
     LoopHypothesis,
@@ -17,6 +17,7 @@ from slam6d.loops import (
     path_lengths,
     verify,
 )
+from slam6d.model import ModelIndex
 from slam6d.octree import Octree, reduce_points
 from slam6d.posegraph import so3_exp
 from tests.simulated_loop import simulated_loop

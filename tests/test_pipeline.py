@@ -357,7 +357,9 @@ def test_simulated_session_on_disk_through_slam6d_run_matches_ground_truth(tmp_p
 def test_stacked_model_pairs_like_the_union_of_its_members() -> None:
     """The metascan without a union tree: each member searched in its own frame, closest hit wins."""
     from slam6d.geometry import pose_from_xyzrpy, transform_points
-    from slam6d.icp import ModelIndex, StackedModel, cell_normals, icp
+    from slam6d.icp import icp
+    from slam6d.model import ModelIndex, StackedModel
+    from slam6d.normals import cell_normals
 
     rng = np.random.default_rng(3)
     floor = np.column_stack([rng.uniform(-5, 5, (4000, 2)), np.zeros(4000)])

@@ -235,7 +235,7 @@ def test_lum_reports_the_residual_at_the_final_poses_and_stops_once_settled(loop
 
 def test_lum_pairs_against_a_shared_registration_model(loop_scans) -> None:  # type: ignore[no-untyped-def]
     """Rounds against models handed over (coarser plane sample, normals per cube) still find the truth."""
-    from slam6d.icp import ModelIndex
+    from slam6d.model import ModelIndex
 
     sim, shared = loop_scans
     models = ScanModels(shared.points, shared.config)

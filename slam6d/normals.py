@@ -1,0 +1,212 @@
+"""Surface normals of a point cloud, for point-to-plane matching: two estimators of one idea.
+
+Both fit a plane to a neighbourhood by PCA (the normal is the eigenvector of the smallest eigenvalue
+of the points' covariance, in closed form) and mark a normal unusable where the neighbourhood is
+degenerate or line-like, since a scan line alone gives no plane. :func:`estimate_normals` takes each
+point's k nearest neighbours; :func:`cell_normals` the points sharing its cube, about ten times
+cheaper (one pass of moments, no neighbour query), for the registration of many scans in a row.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+from numpy.typing import NDArray
+
+from slam6d import nn
+
+FloatArray = NDArray[np.float64]
+
+
+@numba.njit(cache=True, inline="always")
+def _smallest_eigenvector(c00, c01, c02, c11, c12, c22):  # type: ignore[no-untyped-def]
+    """Eigenvector of the smallest eigenvalue of a symmetric 3x3 matrix (closed form), plus the
+    three eigenvalues in ascending order. Closed form because LAPACK per 3x3 costs microseconds each."""
+    p1 = c01 * c01 + c02 * c02 + c12 * c12
+    q = (c00 + c11 + c22) / 3.0
+    d0, d1, d2 = c00 - q, c11 - q, c22 - q
+    p2 = d0 * d0 + d1 * d1 + d2 * d2 + 2.0 * p1
+    p = math.sqrt(p2 / 6.0)
+    if p <= 1e-300:
+        return 0.0, 0.0, 0.0, q, q, q
+    inv = 1.0 / p
+    b00, b11, b22 = d0 * inv, d1 * inv, d2 * inv
+    b01, b02, b12 = c01 * inv, c02 * inv, c12 * inv
+    det = b00 * (b11 * b22 - b12 * b12) - b01 * (b01 * b22 - b12 * b02) + b02 * (b01 * b12 - b11 * b02)
+    r = min(1.0, max(-1.0, det / 2.0))
+    phi = math.acos(r) / 3.0
+    large = q + 2.0 * p * math.cos(phi)
+    small = q + 2.0 * p * math.cos(phi + 2.0 * math.pi / 3.0)
+    middle = 3.0 * q - large - small
+    # rows of (C - small*I); their pairwise cross products all point along the wanted eigenvector
+    a0, a1, a2 = c00 - small, c01, c02
+    e0, e1, e2 = c01, c11 - small, c12
+    f0, f1, f2 = c02, c12, c22 - small
+    x0, x1, x2 = a1 * e2 - a2 * e1, a2 * e0 - a0 * e2, a0 * e1 - a1 * e0
+    y0, y1, y2 = a1 * f2 - a2 * f1, a2 * f0 - a0 * f2, a0 * f1 - a1 * f0
+    z0, z1, z2 = e1 * f2 - e2 * f1, e2 * f0 - e0 * f2, e0 * f1 - e1 * f0
+    nx, ny, nz = x0 * x0 + x1 * x1 + x2 * x2, y0 * y0 + y1 * y1 + y2 * y2, z0 * z0 + z1 * z1 + z2 * z2
+    if nx >= ny and nx >= nz:
+        s = 1.0 / math.sqrt(nx) if nx > 0 else 0.0
+        return x0 * s, x1 * s, x2 * s, small, middle, large
+    if ny >= nz:
+        s = 1.0 / math.sqrt(ny) if ny > 0 else 0.0
+        return y0 * s, y1 * s, y2 * s, small, middle, large
+    s = 1.0 / math.sqrt(nz) if nz > 0 else 0.0
+    return z0 * s, z1 * s, z2 * s, small, middle, large
+
+
+@numba.njit(cache=True, inline="always")
+def _store_plane_normal(normals, valid, row, c00, c01, c02, c11, c12, c22, min_planarity):  # type: ignore[no-untyped-def]
+    """Normal of a covariance into ``normals[row]`` when the points form a plane. A neighbourhood
+    along a single scan line is a line, not a plane (middle eigenvalue ~0): its "normal" is arbitrary,
+    so it is left invalid - one rule for every normal estimator."""
+    x, y, z, _small, middle, large = _smallest_eigenvector(c00, c01, c02, c11, c12, c22)
+    if large > 0.0 and middle > min_planarity * large and (x != 0.0 or y != 0.0 or z != 0.0):
+        normals[row, 0] = x
+        normals[row, 1] = y
+        normals[row, 2] = z
+        valid[row] = True
+
+
+@numba.njit(cache=True, parallel=True, nogil=True)
+def _normals_kernel(points, neighbours, min_planarity):  # type: ignore[no-untyped-def]
+    n = neighbours.shape[0]
+    k = neighbours.shape[1]
+    normals = np.zeros((n, 3))
+    valid = np.zeros(n, dtype=np.bool_)
+    for i in numba.prange(n):
+        count = 0
+        mx = 0.0
+        my = 0.0
+        mz = 0.0
+        for j in range(k):
+            idx = neighbours[i, j]
+            if idx >= 0:
+                mx += points[idx, 0]
+                my += points[idx, 1]
+                mz += points[idx, 2]
+                count += 1
+        if count < 3:
+            continue
+        mx /= count
+        my /= count
+        mz /= count
+        c00 = 0.0
+        c01 = 0.0
+        c02 = 0.0
+        c11 = 0.0
+        c12 = 0.0
+        c22 = 0.0
+        for j in range(k):
+            idx = neighbours[i, j]
+            if idx >= 0:
+                dx = points[idx, 0] - mx
+                dy = points[idx, 1] - my
+                dz = points[idx, 2] - mz
+                c00 += dx * dx
+                c01 += dx * dy
+                c02 += dx * dz
+                c11 += dy * dy
+                c12 += dy * dz
+                c22 += dz * dz
+        _store_plane_normal(normals, valid, i, c00, c01, c02, c11, c12, c22, min_planarity)
+    return normals, valid
+
+
+def estimate_normals(
+    source: nn.NeighbourIndex, queries: FloatArray, k: int, threads: int = 2, min_planarity: float = 0.05
+) -> tuple[FloatArray, NDArray[np.bool_]]:
+    """Unit normal at each query point from a PCA of its k nearest points in ``source``, and which are usable.
+
+    A normal is unusable when its neighbourhood is degenerate (fewer than 3 points) or line-like
+    (second eigenvalue below ``min_planarity`` times the largest).
+    """
+    _, neighbours = source.knn(queries, k)
+    with _numba_threads(threads):
+        return _normals_kernel(source.points, np.ascontiguousarray(neighbours), float(min_planarity))
+
+
+@numba.njit(cache=True, nogil=True)
+def _cell_moments(points, cell_of, cells):  # type: ignore[no-untyped-def]
+    """Per cell: count, sum and sum of outer products of its points (one pass, no neighbour search)."""
+    moments = np.zeros((cells, 10))
+    for i in range(points.shape[0]):
+        c = cell_of[i]
+        x = points[i, 0]
+        y = points[i, 1]
+        z = points[i, 2]
+        m = moments[c]
+        m[0] += 1.0
+        m[1] += x
+        m[2] += y
+        m[3] += z
+        m[4] += x * x
+        m[5] += x * y
+        m[6] += x * z
+        m[7] += y * y
+        m[8] += y * z
+        m[9] += z * z
+    return moments
+
+
+@numba.njit(cache=True, nogil=True)
+def _cell_normals_kernel(moments, min_points, min_planarity):  # type: ignore[no-untyped-def]
+    n = moments.shape[0]
+    normals = np.zeros((n, 3))
+    valid = np.zeros(n, dtype=np.bool_)
+    for c in range(n):
+        count = moments[c, 0]
+        if count < min_points:
+            continue
+        mx = moments[c, 1] / count
+        my = moments[c, 2] / count
+        mz = moments[c, 3] / count
+        c00 = moments[c, 4] / count - mx * mx
+        c01 = moments[c, 5] / count - mx * my
+        c02 = moments[c, 6] / count - mx * mz
+        c11 = moments[c, 7] / count - my * my
+        c12 = moments[c, 8] / count - my * mz
+        c22 = moments[c, 9] / count - mz * mz
+        _store_plane_normal(normals, valid, c, c00, c01, c02, c11, c12, c22, min_planarity)
+    return normals, valid
+
+
+def cell_normals(
+    points: FloatArray, cell_size: float, min_points: int = 4, min_planarity: float = 0.05
+) -> tuple[FloatArray, NDArray[np.bool_]]:
+    """Unit normal at every point from a PCA of the points sharing its ``cell_size`` cube, and which are usable.
+
+    About ten times cheaper than :func:`estimate_normals` on a reduced scan (no k-nearest-neighbour
+    query: one pass accumulates each cube's moments), at the price of fewer usable normals (cubes
+    across an edge or with fewer than ``min_points`` points are unusable) and cruder ones near
+    edges. Sequential registration, which re-estimates nothing and only needs the planes to slide
+    along, uses these; relaxation keeps the k-NN normals.
+    """
+    points = np.ascontiguousarray(points, dtype=np.float64)
+    if len(points) == 0:
+        return np.zeros((0, 3)), np.zeros(0, dtype=np.bool_)
+    local = points - points.mean(axis=0)  # moments about a nearby origin keep the covariance exact
+    cells = np.floor(local / float(cell_size)).astype(np.int64)
+    keys = (cells[:, 0] << 42) + (cells[:, 1] << 21) + cells[:, 2]
+    _, cell_of = np.unique(keys, return_inverse=True)
+    cell_of = cell_of.ravel()
+    moments = _cell_moments(local, cell_of, int(cell_of.max()) + 1)
+    normals, valid = _cell_normals_kernel(moments, float(min_points), float(min_planarity))
+    return normals[cell_of], valid[cell_of]
+
+
+class _numba_threads:  # noqa: N801 - used like a function in a with-statement
+    """Bound numba's parallel kernels to ``threads`` for the duration of a block (thread-local in numba)."""
+
+    def __init__(self, threads: int) -> None:
+        self.threads = max(1, min(int(threads), numba.config.NUMBA_NUM_THREADS))  # type: ignore[attr-defined]
+
+    def __enter__(self) -> None:
+        self.previous = numba.get_num_threads()
+        numba.set_num_threads(self.threads)
+
+    def __exit__(self, *exc: object) -> None:
+        numba.set_num_threads(self.previous)
