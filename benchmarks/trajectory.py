@@ -438,7 +438,8 @@ def relax_graph(count: int = 10_000, loop_fraction: float = 0.05) -> None:
     """Our pose-graph solver and gtsam on the same noisy 10,000-pose graph with random loop edges."""
     import gtsam
 
-    from slam6d.posegraph import PoseEdge, optimize_pose_graph, so3_exp
+    from slam6d.geometry import so3_exp
+    from slam6d.posegraph import PoseEdge, optimize_pose_graph
 
     rng = np.random.default_rng(0)
     truth = [np.eye(4)]

@@ -174,25 +174,56 @@ def pose_difference(a: Matrix, b: Matrix) -> tuple[float, float]:
     return float(np.linalg.norm(delta[:3, 3])), rotation_angle(delta[:3, :3])
 
 
-def axis_angle_to_rotation(axis_angle: Matrix) -> Matrix:
-    """Rodrigues' formula; used by small-angle (point-to-plane) updates."""
-    v = np.asarray(axis_angle, dtype=np.float64)
-    angle = float(np.linalg.norm(v))
-    if angle < 1e-15:
-        return np.eye(3)
-    k = v / angle
-    kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
-    return np.eye(3) + np.sin(angle) * kx + (1.0 - np.cos(angle)) * (kx @ kx)
+def skew(v: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Cross-product matrices [v]x of a stack of vectors (..., 3) -> (..., 3, 3)."""
+    out = np.zeros((*v.shape[:-1], 3, 3))
+    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
+    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
+    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
+    return out
 
 
-def rotation_to_axis_angle(rotation: Matrix) -> Matrix:
-    """Inverse of :func:`axis_angle_to_rotation` (via the quaternion, which is stable near pi)."""
-    q = rotation_to_quaternion(rotation)
-    sin_half = float(np.linalg.norm(q[1:]))
-    if sin_half < 1e-15:
-        return np.zeros(3)
-    angle = 2.0 * np.arctan2(sin_half, q[0])
-    return q[1:] / sin_half * angle
+def so3_exp(phi: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Rotation matrices of rotation vectors (axis times angle), one (3,) or a stack (..., 3), by
+    Rodrigues' formula: the exponential map of SO(3), as small-angle updates of ICP and the pose
+    graph need it."""
+    theta = np.linalg.norm(phi, axis=-1)[..., None, None]
+    k = skew(phi)
+    small = theta < 1e-8
+    safe = np.where(small, 1.0, theta)
+    a = np.where(small, 1.0 - theta**2 / 6.0, np.sin(safe) / safe)
+    b = np.where(small, 0.5 - theta**2 / 24.0, (1.0 - np.cos(safe)) / safe**2)
+    return np.eye(3) + a * k + b * (k @ k)
+
+
+def so3_log(rotation: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Rotation vectors of a stack of rotations (..., 3, 3) -> (..., 3), stable near 0 and near pi."""
+    cos = np.clip((np.trace(rotation, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0)
+    theta = np.arccos(cos)
+    vee = np.stack(
+        [
+            rotation[..., 2, 1] - rotation[..., 1, 2],
+            rotation[..., 0, 2] - rotation[..., 2, 0],
+            rotation[..., 1, 0] - rotation[..., 0, 1],
+        ],
+        axis=-1,
+    )
+    small = theta < 1e-6
+    sin = np.sin(theta)
+    scale = np.where(small, 0.5 + theta**2 / 12.0, theta / (2.0 * np.where(small, 1.0, sin)))
+    out = vee * scale[..., None]
+    near_pi = theta > np.pi - 1e-3
+    if np.any(near_pi):  # the antisymmetric part vanishes there: read the axis off the symmetric part
+        for index in np.argwhere(near_pi.reshape(-1)).ravel():
+            r = rotation.reshape(-1, 3, 3)[index]
+            th = theta.reshape(-1)[index]
+            col = int(np.argmax(np.diag(r)))
+            axis = (r[:, col] + np.eye(3)[col]) / np.sqrt(max(2.0 * (1.0 + r[col, col]), 1e-300))
+            vec = axis * th
+            if np.dot(vec, vee.reshape(-1, 3)[index]) < 0.0:
+                vec = -vec
+            out.reshape(-1, 3)[index] = vec
+    return out
 
 
 def look_at(eye: ArrayLike, target: ArrayLike, up: ArrayLike = (0.0, 0.0, 1.0)) -> Matrix:

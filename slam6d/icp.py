@@ -36,7 +36,7 @@ from numpy.typing import NDArray
 
 from slam6d import nn
 from slam6d.errors import RegistrationError
-from slam6d.geometry import axis_angle_to_rotation, make_pose, rotation_angle, transform_points
+from slam6d.geometry import make_pose, rotation_angle, so3_exp, transform_points
 from slam6d.model import NORMAL_NEIGHBOURS, NORMAL_VOXEL_SIZE, ModelIndex
 from slam6d.octree import reduce_points
 
@@ -231,7 +231,7 @@ def point_to_plane_step(data: FloatArray, model: FloatArray, normals: FloatArray
         x = np.linalg.solve(a, b)
     except np.linalg.LinAlgError:
         x = np.linalg.lstsq(a, b, rcond=None)[0]
-    rotation = axis_angle_to_rotation(x[:3])
+    rotation = so3_exp(x[:3])
     # the update is about `centre`: p' = R (p - c) + c + t
     return make_pose(rotation, centre + x[3:] - rotation @ centre)
 

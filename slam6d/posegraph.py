@@ -27,7 +27,7 @@ from cvxopt import cholmod
 from numpy.typing import NDArray
 
 from slam6d.errors import Slam6dError
-from slam6d.geometry import Matrix, invert
+from slam6d.geometry import Matrix, invert, skew, so3_exp, so3_log
 
 
 class RelaxationError(Slam6dError):
@@ -56,61 +56,12 @@ class PoseGraphResult:
     edge_rotation_error: list[float] = field(default_factory=list)
 
 
-# ---------------------------------------------------------------- vectorised SO(3)
-
-
-def _skew(v: NDArray[np.float64]) -> NDArray[np.float64]:
-    out = np.zeros((*v.shape[:-1], 3, 3))
-    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
-    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
-    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
-    return out
-
-
-def so3_exp(phi: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Rodrigues' formula for a stack of rotation vectors (..., 3) -> (..., 3, 3)."""
-    theta = np.linalg.norm(phi, axis=-1)[..., None, None]
-    k = _skew(phi)
-    small = theta < 1e-8
-    safe = np.where(small, 1.0, theta)
-    a = np.where(small, 1.0 - theta**2 / 6.0, np.sin(safe) / safe)
-    b = np.where(small, 0.5 - theta**2 / 24.0, (1.0 - np.cos(safe)) / safe**2)
-    return np.eye(3) + a * k + b * (k @ k)
-
-
-def so3_log(rotation: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Rotation vectors of a stack of rotations (..., 3, 3) -> (..., 3), stable near 0 and near pi."""
-    cos = np.clip((np.trace(rotation, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0)
-    theta = np.arccos(cos)
-    vee = np.stack(
-        [
-            rotation[..., 2, 1] - rotation[..., 1, 2],
-            rotation[..., 0, 2] - rotation[..., 2, 0],
-            rotation[..., 1, 0] - rotation[..., 0, 1],
-        ],
-        axis=-1,
-    )
-    small = theta < 1e-6
-    sin = np.sin(theta)
-    scale = np.where(small, 0.5 + theta**2 / 12.0, theta / (2.0 * np.where(small, 1.0, sin)))
-    out = vee * scale[..., None]
-    near_pi = theta > np.pi - 1e-3
-    if np.any(near_pi):  # the antisymmetric part vanishes there: read the axis off the symmetric part
-        for index in np.argwhere(near_pi.reshape(-1)).ravel():
-            r = rotation.reshape(-1, 3, 3)[index]
-            th = theta.reshape(-1)[index]
-            col = int(np.argmax(np.diag(r)))
-            axis = (r[:, col] + np.eye(3)[col]) / np.sqrt(max(2.0 * (1.0 + r[col, col]), 1e-300))
-            vec = axis * th
-            if np.dot(vec, vee.reshape(-1, 3)[index]) < 0.0:
-                vec = -vec
-            out.reshape(-1, 3)[index] = vec
-    return out
+# ---------------------------------------------------------------- SO(3) Jacobian
 
 
 def _inverse_right_jacobian(phi: NDArray[np.float64]) -> NDArray[np.float64]:
     theta = np.linalg.norm(phi, axis=-1)[..., None, None]
-    k = _skew(phi)
+    k = skew(phi)
     small = theta < 1e-5
     safe = np.where(small, 1.0, theta)
     coef = np.where(
@@ -818,7 +769,7 @@ def point_pair_information(data_in_i: NDArray[np.float64], origin_j_in_i: Matrix
     if n == 0:
         return np.zeros((6, 6))
     # J_r = -[q]x R_ij ; H = [[n I, sum J_r], [sum J_r^T, sum J_r^T J_r]]
-    sq = _skew(q)
+    sq = skew(q)
     jr = -sq @ rij
     info = np.zeros((6, 6))
     info[:3, :3] = n * np.eye(3)

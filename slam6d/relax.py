@@ -46,7 +46,7 @@ from numpy.typing import NDArray
 
 from slam6d import nn
 from slam6d.errors import RegistrationError, Slam6dError
-from slam6d.geometry import Matrix, invert, make_pose, transform_points
+from slam6d.geometry import Matrix, invert, make_pose, so3_exp, transform_points
 from slam6d.icp import ICPConfig, correspondences, icp
 from slam6d.model import ModelIndex
 from slam6d.posegraph import (
@@ -57,7 +57,6 @@ from slam6d.posegraph import (
     check_connected,
     optimize_pose_graph,
     point_pair_information,
-    so3_exp,
 )
 
 FloatArray = NDArray[np.float64]

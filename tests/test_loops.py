@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from slam6d.geometry import invert, make_pose, pose_difference, pose_from_xyzrpy, rotation_angle
+from slam6d.geometry import invert, make_pose, pose_difference, pose_from_xyzrpy, rotation_angle, so3_exp
 from slam6d.icp import ICPConfig
 from slam6d.loops import (
     LoopConfig,
@@ -19,7 +19,6 @@ from slam6d.loops import (
 )
 from slam6d.model import ModelIndex
 from slam6d.octree import Octree, reduce_points
-from slam6d.posegraph import so3_exp
 from tests.simulated_loop import simulated_loop
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from slam6d.geometry import invert, make_pose
+from slam6d.geometry import invert, make_pose, so3_exp
 from slam6d.posegraph import (
     BlockSystem,
     PoseEdge,
@@ -14,7 +14,6 @@ from slam6d.posegraph import (
     _pack_edges,
     check_connected,
     optimize_pose_graph,
-    so3_exp,
 )
 
 

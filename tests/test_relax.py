@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from slam6d.geometry import invert, make_pose, pose_difference, pose_from_xyzrpy
+from slam6d.geometry import invert, make_pose, pose_difference, pose_from_xyzrpy, so3_exp, so3_log
 from slam6d.icp import ICPConfig
 from slam6d.metrics import absolute_trajectory_error
 from slam6d.posegraph import (
@@ -13,8 +13,6 @@ from slam6d.posegraph import (
     RelaxationError,
     optimize_pose_graph,
     point_pair_information,
-    so3_exp,
-    so3_log,
 )
 from slam6d.relax import (
     RelaxationConfig,
