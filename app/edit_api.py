@@ -18,8 +18,7 @@ from app.api import Author, _state
 from app.editing import editor_for
 from app.jobs import JobConflictError, Work
 from app.workbench import EditError, Workbench
-from slam6d.errors import Slam6dError
-from slam6d.posegraph import RelaxationError
+from slam6d.errors import RelaxationError, Slam6dError
 
 
 class EdgeRequest(BaseModel):

@@ -16,7 +16,7 @@ Loop hypotheses (the review list) are a journal entry of kind ``loop_hypotheses`
 changes nothing, deciding on one is a new revision of the graph.
 
 Guardrails live here, not in the GUI: relaxation refuses a graph whose scans are not all tied to a
-fixed scan (the engine's :class:`~slam6d.posegraph.RelaxationError`), and every edit that moves
+fixed scan (the engine's :class:`~slam6d.errors.RelaxationError`), and every edit that moves
 scans compares a residual summary before and after and reports a jump as a warning.
 """
 
@@ -33,14 +33,14 @@ import numpy as np
 from app.jobs import Cancel, JobCancelledError, Progress, Work
 from app.registration import hypotheses_entry, pipeline_config
 from app.workbench import EditError
-from slam6d.errors import RegistrationError
+from slam6d.errors import RegistrationError, RelaxationError
 from slam6d.geometry import Matrix, invert, transform_points
 from slam6d.icp import FloatArray, ICPConfig, icp
 from slam6d.initial_guess import GuessResult, OctreeSearchConfig, config_for, octree_guess
 from slam6d.loops import LoopHypothesis, diffuse_loop_correction, find_loop_hypotheses, loop_correction, verify
 from slam6d.model import ModelIndex
 from slam6d.octree import Octree, reduce_points
-from slam6d.posegraph import RelaxationError, check_connected, optimize_pose_graph
+from slam6d.posegraph import check_connected, optimize_pose_graph
 from slam6d.relax import NeighbourPair, RelaxationConfig, ScanModels, UnionIndex, match_edge, simultaneous_matching
 from slam6d.trace import to_jsonable
 

@@ -30,3 +30,7 @@ class EmptyScanError(Slam6dError):
 
 class RegistrationError(Slam6dError):
     """Registration could not produce a result (e.g. no point pairs within the max distance)."""
+
+
+class RelaxationError(Slam6dError):
+    """Global relaxation cannot run or did not produce a usable result; the message says why."""

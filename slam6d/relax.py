@@ -17,7 +17,7 @@ Two methods, both over the same neighbour graph (scans whose reduced clouds shar
   plane-sample tree (built once) is queried once per round by the points of all its neighbours
   at once (against the registration's model when one was handed over,
   :meth:`ScanModels.share_plane_model`), the normal blocks of all pairs of a scan are summed in one
-  compiled pass, and the joint system goes to :class:`slam6d.posegraph.BlockSystem`. Rounds stop
+  compiled pass, and the joint system goes to :class:`slam6d.block_system.BlockSystem`. Rounds stop
   once a round at the final robust scale moves no scan by more than ``settle_fraction`` of that
   scale, or changes the Cauchy-weighted cost by less than ``chi2_tolerance`` (re-pairing keeps
   scans jittering below a millimetre, so the movement alone may never fall under ``tolerance``).
@@ -45,15 +45,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from slam6d import nn
-from slam6d.errors import RegistrationError, Slam6dError
+from slam6d.block_system import BlockSystem
+from slam6d.errors import RegistrationError, RelaxationError, Slam6dError
 from slam6d.geometry import Matrix, invert, make_pose, so3_exp, transform_points
 from slam6d.icp import ICPConfig, correspondences, icp
 from slam6d.model import ModelIndex
 from slam6d.posegraph import (
-    BlockSystem,
     PoseEdge,
     PoseGraphResult,
-    RelaxationError,
     check_connected,
     optimize_pose_graph,
     point_pair_information,
@@ -663,7 +662,7 @@ def _joint_step(
     """One Gauss-Newton step of all scans at once over the current closest-point pairs (LUM's round).
 
     Each scan is queried once, by the thinned points of all its graph neighbours at once; the
-    joint system is solved by :class:`slam6d.posegraph.BlockSystem`. Each pair's residuals count
+    joint system is solved by :class:`slam6d.block_system.BlockSystem`. Each pair's residuals count
     with its budget weight. A little Levenberg damping keeps directions no pair constrains (a scan
     seeing one flat wall) from running away.
     """

@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from slam6d.block_system import BlockSystem
+from slam6d.errors import RelaxationError
 from slam6d.geometry import invert, make_pose, so3_exp
 from slam6d.posegraph import (
-    BlockSystem,
     PoseEdge,
-    RelaxationError,
     _chordal_rotations,
     _pack_edges,
     check_connected,

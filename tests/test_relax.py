@@ -5,12 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from slam6d.errors import RelaxationError
 from slam6d.geometry import invert, make_pose, pose_difference, pose_from_xyzrpy, so3_exp, so3_log
 from slam6d.icp import ICPConfig
 from slam6d.metrics import absolute_trajectory_error
 from slam6d.posegraph import (
     PoseEdge,
-    RelaxationError,
     optimize_pose_graph,
     point_pair_information,
 )
