@@ -21,7 +21,6 @@ Two methods, both over the same neighbour graph (scans whose reduced clouds shar
   once a round at the final robust scale moves no scan by more than ``settle_fraction`` of that
   scale, or changes the Cauchy-weighted cost by less than ``chi2_tolerance`` (re-pairing keeps
   scans jittering below a millimetre, so the movement alone may never fall under ``tolerance``).
-  :func:`lum` relaxes a graph of relative-pose edges (:mod:`slam6d.posegraph`).
 
 Residuals are reported before and after as the RMS point-to-plane distance of sampled data points
 paired within the ICP max distance with their neighbour scan (the quantity both methods reduce).
@@ -52,9 +51,7 @@ from slam6d.icp import ICPConfig, correspondences, icp
 from slam6d.model import ModelIndex
 from slam6d.posegraph import (
     PoseEdge,
-    PoseGraphResult,
     check_connected,
-    optimize_pose_graph,
     point_pair_information,
 )
 
@@ -69,7 +66,6 @@ __all__ = [
     "RelaxationResult",
     "ScanModels",
     "carry_forward",
-    "lum",
     "lum_relaxation",
     "neighbour_pairs",
     "pair_residual",
@@ -506,17 +502,6 @@ def simultaneous_matching(
         neighbours=pairs,
         seconds=time.perf_counter() - began,
     )
-
-
-def lum(
-    poses: Sequence[Matrix],
-    edges: Sequence[PoseEdge],
-    fixed: Iterable[int] = (0,),
-    max_iterations: int = 30,
-    progress: Callable[[int, float], None] | None = None,
-) -> PoseGraphResult:
-    """Relax a pose graph given as relative-pose edges (see :func:`slam6d.posegraph.optimize_pose_graph`)."""
-    return optimize_pose_graph(poses, edges, fixed=fixed, max_iterations=max_iterations, progress=progress)
 
 
 def _strongest(pairs: Sequence[NeighbourPair], count: int, keep: int) -> list[NeighbourPair]:
