@@ -88,10 +88,6 @@ def read_tum(path: Path | str) -> tuple[NDArray[np.float64], list[Matrix]]:
     return rows[:, 0].copy(), _poses_from_rows(Path(path), text, rows)
 
 
-def read_tum_poses(path: Path | str) -> list[Matrix]:
-    return read_tum(path)[1]
-
-
 def write_tum_poses(
     path: Path | str, poses: Sequence[Matrix], timestamps: Sequence[float] | NDArray[np.float64] | None = None
 ) -> None:
