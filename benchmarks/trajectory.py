@@ -85,6 +85,9 @@ def per_pair(values: dict[tuple[int, int], float]) -> str:
     return ", ".join(f"{i}-{j} {100 * v:.1f}" for (i, j), v in values.items())
 
 
+_CHECK_ICP = ICPConfig(max_distance=0.3, max_iterations=60)
+
+
 class SelfConsistency:
     """Judges a BALM hall trajectory without trusting its drifting reference.
 
@@ -134,8 +137,7 @@ class SelfConsistency:
         return self._data[k]
 
     def _optimum(self, model: int, data: int, start: Matrix) -> Matrix:
-        config = ICPConfig(max_distance=0.3, max_iterations=60)
-        return icp(self._model(model), self._points(data), start, config).transform
+        return icp(self._model(model), self._points(data), start, _CHECK_ICP).transform
 
     def _displacement(self, j: int, a: Matrix, b: Matrix) -> float:
         points = self._points(j)
@@ -174,6 +176,23 @@ class SelfConsistency:
             backward = invert(self._optimum(j, i, invert(start)))
             result[(i, j)] = self._displacement(j, forward, backward)
         return result
+
+    def half_scan_scatter(self, poses: Sequence[Matrix], step: int = 3) -> list[float]:
+        """How far the checker's optimum moves when it sees only half of the data scan (metres).
+
+        For consecutive pairs (k, k + 1), every ``step``-th, scan k + 1 is matched whole, then each
+        half of its sweep (its points in recorded order) from that optimum; the mean displacement of
+        the whole scan's points between the two optima is the floor of the check: far-apart pairs
+        overlap in part of a scan, so even poses at every whole-scan optimum move by about this much.
+        """
+        moves = []
+        for k in range(0, len(self.sequence) - 1, step):
+            whole = self._optimum(k, k + 1, invert(poses[k]) @ poses[k + 1])
+            points = self.sequence[k + 1].points
+            for part in np.array_split(points, 2):
+                half = icp(self._model(k), part[reduce_points(part, 0.1)], whole, _CHECK_ICP).transform
+                moves.append(self._displacement(k + 1, whole, half))
+        return moves
 
     def summary(self, poses: Sequence[Matrix]) -> str:
         named_corrections = self.corrections(poses, CHECK_PAIRS)
@@ -410,6 +429,11 @@ def balm(peers: bool, only: str | None, method: str) -> None:
     print(
         f"  checker repeatability on the named pairs (i as model vs j as model): "
         f"{100 * np.mean(list(spread.values())):.2f} cm ({per_pair(spread)})"
+    )
+    halves = 100 * np.array(check.half_scan_scatter(pipeline.poses))
+    print(
+        f"  checker floor: its optimum moves {halves.mean():.2f} cm (median {np.median(halves):.2f}) when it sees "
+        f"half of a consecutive scan ({len(halves)} halves)"
     )
     print(f"  reference poses: {quality(list(reference))}")
     if peers:
