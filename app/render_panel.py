@@ -17,7 +17,6 @@ import math
 import re
 import threading
 import time
-import traceback
 import weakref
 from pathlib import Path
 from typing import Annotated, Any
@@ -355,25 +354,16 @@ class RenderPanel:
             self.progress = gui.add_progress_bar(0.0, visible=False)
             self.render_status = gui.add_markdown("")
             self.downloads = gui.add_html("")
-        self.add_button.on_click(lambda e: self._safely(lambda: self._add_from_view(e)))
-        self.edit_buttons.on_click(lambda e: self._safely(lambda: self._edit(e)))
-        self.show_path.on_update(lambda _: self._safely(self.draw))
-        self.fly_button.on_click(lambda e: self._safely(lambda: self._fly(e)))
-        self.render_button.on_click(lambda e: self._safely(lambda: self._render(e)))
+        self.add_button.on_click(lambda e: self.viewer.run_safely(lambda: self._add_from_view(e)))
+        self.edit_buttons.on_click(lambda e: self.viewer.run_safely(lambda: self._edit(e)))
+        self.show_path.on_update(lambda _: self.viewer.run_safely(self.draw))
+        self.fly_button.on_click(lambda e: self.viewer.run_safely(lambda: self._fly(e)))
+        self.render_button.on_click(lambda e: self.viewer.run_safely(lambda: self._render(e)))
         self.cancel_button.on_click(lambda _: self._cancel())
 
     def _cancel(self) -> None:
         if self.job_id:
             self.workbench.jobs.cancel(self.job_id)
-
-    def _safely(self, action: Any) -> None:
-        try:
-            action()
-        except (Slam6dError, ValueError, JobConflictError, FileExistsError) as exc:
-            self.viewer.warn(str(exc))
-        except Exception as exc:
-            traceback.print_exc()
-            self.viewer.warn(f"{type(exc).__name__}: {exc}")
 
     def _add_from_view(self, event: Any) -> None:
         client = event.client
@@ -410,15 +400,17 @@ class RenderPanel:
 
     def path_changed(self) -> None:
         """The saved path changed (from this panel, another browser or REST): redraw list and preview."""
-        self._safely(self.draw)
+        self.viewer.run_safely(self.draw)
 
     def _on_revision(self, session_id: str) -> None:
         if session_id == self.session_id and self.viewer.ready.is_set() and not keyframes_of(self.session):
             self.path_changed()  # the default path follows the scans, which just moved
 
     def draw(self) -> None:
-        with self._draw_lock:
-            self._draw()
+        # the view's lock first (a revision redraws while holding it), and nothing once it has stopped
+        with self.viewer.lock, self._draw_lock:
+            if not self.viewer.stopped:
+                self._draw()
 
     def _draw(self) -> None:
         keyframes = keyframes_of(self.session)

@@ -17,6 +17,7 @@ import viser
 
 from app import render_panel, scene
 from app.editing import editor_for
+from app.jobs import JobConflictError
 from app.panels import build_panels
 from app.panels.progress import show_job_progress
 from app.registration import pipeline_config, working_copy
@@ -27,6 +28,8 @@ from slam6d.geometry import Matrix, rotation_to_quaternion
 from slam6d.session import CACHE_DIR
 
 COLOUR_MODES = ("scan", "height", "residual")
+# what a button press may run into that the user can act on: shown as the message alone
+USER_ERRORS = (Slam6dError, ValueError, FileExistsError, JobConflictError)
 _PAIR_DATA = (255, 120, 0)
 _PAIR_MODEL = (60, 140, 255)
 _MAX_CORRESPONDENCES = 300
@@ -151,10 +154,14 @@ class SessionViewer:
         return (field.value.strip() if field is not None else "") or "anonymous"
 
     def run_safely(self, action: Any) -> None:
-        """GUI callbacks: an engine error becomes a visible warning, not a dead button."""
+        """GUI callbacks and the panels' background refreshes: an error the user can act on becomes a
+        visible warning, not a dead button; anything else also leaves its traceback in the log. Once the
+        view has stopped nothing runs: its server would drop the updates."""
+        if self.stopped:
+            return
         try:
             action()
-        except Slam6dError as exc:
+        except USER_ERRORS as exc:
             self.warn(str(exc))
         except Exception as exc:
             traceback.print_exc()
@@ -415,6 +422,8 @@ class SessionViewer:
         One atomic batch, so a browser never draws a scan at a new position with its old rotation.
         """
         with self.lock, self.server.atomic():
+            if self.stopped:  # a stepper or replay thread may still be mid-step when the view stops
+                return
             moved = False
             for k in range(len(poses)) if indices is None else indices:
                 pose = np.asarray(poses[k], dtype=np.float64)
@@ -656,12 +665,18 @@ class Stepper:
     def step(self) -> None:
         with self._lock:
             if not self.finished:
-                self._show(self.pipeline.step())
+                self._show_all([self.pipeline.step()])
 
     def next_scan(self) -> None:
         with self._lock:
             if not self.finished:
-                for event in self.pipeline.step_scan():
+                self._show_all(self.pipeline.step_scan())
+
+    def _show_all(self, events: list[Any]) -> None:
+        """Draw under the view's lock: a view stopped meanwhile (its server gone) draws nothing."""
+        with self.viewer.lock:
+            if not self.viewer.stopped:
+                for event in events:
                     self._show(event)
 
     def play(self, rate: float = 30.0) -> None:
@@ -688,6 +703,8 @@ class Stepper:
     def pause(self) -> None:
         was_playing = self._playing.is_set()
         self._playing.clear()
+        if self.viewer.stopped:
+            return
         self.viewer.play_button.disabled = False
         self.viewer.pause_button.disabled = True
         if was_playing:

@@ -27,9 +27,10 @@ def build_panels(viewer: ViewerHost) -> list[Panel]:
 
     def first_fill() -> None:  # lists need the scans' poses, which load in the background
         viewer.ready.wait()
-        if not viewer.error:
-            for panel in panels:
-                viewer.run_safely(panel.refresh)
+        with viewer.lock:  # a view stopped while this thread waited draws nothing
+            if not viewer.error:
+                for panel in panels:
+                    viewer.run_safely(panel.refresh)
 
     threading.Thread(target=first_fill, name=f"panels-{viewer.session_id}", daemon=True).start()
     return panels

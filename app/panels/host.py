@@ -25,6 +25,8 @@ class ViewerHost(Protocol):
     state: SessionState
     server: viser.ViserServer
     ready: threading.Event
+    lock: threading.RLock  # held while drawing, and by stop(): nothing is half-drawn when the server goes
+    stopped: bool
     error: str | None
     poses: list[Matrix]
     local: list[np.ndarray]  # display points per scan, scanner frame
