@@ -197,9 +197,12 @@ def so3_exp(phi: NDArray[np.float64]) -> NDArray[np.float64]:
 
 
 def so3_log(rotation: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Rotation vectors of a stack of rotations (..., 3, 3) -> (..., 3), stable near 0 and near pi."""
-    cos = np.clip((np.trace(rotation, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0)
-    theta = np.arccos(cos)
+    """Rotation vectors of a stack of rotations (..., 3, 3) -> (..., 3), stable near 0 and near pi.
+
+    The angle comes from both its cosine and its sine, as in :func:`rotation_angle`: the vector's
+    length is the angle divided by sin(angle), so an error of arccos near pi (1e-13) grows to 1e-10.
+    """
+    cos = (np.trace(rotation, axis1=-2, axis2=-1) - 1.0) / 2.0
     vee = np.stack(
         [
             rotation[..., 2, 1] - rotation[..., 1, 2],
@@ -208,21 +211,17 @@ def so3_log(rotation: NDArray[np.float64]) -> NDArray[np.float64]:
         ],
         axis=-1,
     )
+    theta = np.arctan2(np.linalg.norm(vee, axis=-1) / 2.0, cos)
     small = theta < 1e-6
     sin = np.sin(theta)
     scale = np.where(small, 0.5 + theta**2 / 12.0, theta / (2.0 * np.where(small, 1.0, sin)))
     out = vee * scale[..., None]
     near_pi = theta > np.pi - 1e-3
-    if np.any(near_pi):  # the antisymmetric part vanishes there: read the axis off the symmetric part
+    if np.any(near_pi):  # the antisymmetric part vanishes there: take the axis from the quaternion
         for index in np.argwhere(near_pi.reshape(-1)).ravel():
-            r = rotation.reshape(-1, 3, 3)[index]
-            th = theta.reshape(-1)[index]
-            col = int(np.argmax(np.diag(r)))
-            axis = (r[:, col] + np.eye(3)[col]) / np.sqrt(max(2.0 * (1.0 + r[col, col]), 1e-300))
-            vec = axis * th
-            if np.dot(vec, vee.reshape(-1, 3)[index]) < 0.0:
-                vec = -vec
-            out.reshape(-1, 3)[index] = vec
+            q = rotation_to_quaternion(rotation.reshape(-1, 3, 3)[index])
+            sin_half = float(np.linalg.norm(q[1:]))
+            out.reshape(-1, 3)[index] = q[1:] / sin_half * 2.0 * np.arctan2(sin_half, q[0])
     return out
 
 
