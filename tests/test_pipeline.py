@@ -284,7 +284,8 @@ def test_balm_hall_far_apart_scans_agree_better_than_the_pose_graph_peer(balm_ru
     reason="target not met: far pairs 1.88 cm (target 1.5), 57-88 1.5 cm (target 1); named pairs 2.88 cm. "
     "The checker's own optimum moves 4.2 cm on the named pairs (1.2 on 57-88) when the two scans swap roles, "
     "fitting the poses to the checked pairs themselves reaches only 1.41 cm far / 1.14 cm on 57-88, and shown half "
-    "of a consecutive scan the checker's optimum moves 1.21 cm from the whole scan's",
+    "of a consecutive scan's sweep the checker's optimum moves 1.21 cm from the whole scan's (0.25 cm for a random "
+    "half of its points: the scans are not rigid to a centimetre)",
     strict=False,
 )
 def test_balm_hall_from_drifted_odometry_is_self_consistent(balm_run) -> None:  # type: ignore[no-untyped-def]
