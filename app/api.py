@@ -106,7 +106,7 @@ def build_router(workbench: Workbench) -> APIRouter:
         state = _state(workbench, session_id)
         session = state.session
         config = session.config
-        journal = session.journal()
+        journal = session.journal.entries()
         return {
             **workbench.summary(session_id),
             "config": {
@@ -120,9 +120,9 @@ def build_router(workbench: Workbench) -> APIRouter:
                 "created": config.created,
             },
             "scan_files": [p.name for p in session.scan_files()],
-            "revisions": session.revisions(),
-            "can_undo": session.can_undo(),
-            "can_redo": session.can_redo(),
+            "revisions": session.journal.revisions(),
+            "can_undo": session.journal.can_undo(),
+            "can_redo": session.journal.can_redo(),
             "journal": [e.__dict__ for e in journal[-50:]],
             "jobs": [j.as_dict() for j in workbench.jobs.for_session(session_id)],
         }
@@ -165,7 +165,7 @@ def build_router(workbench: Workbench) -> APIRouter:
 
     @router.get("/sessions/{session_id}/journal")
     def journal(session_id: str) -> list[dict[str, Any]]:
-        return [e.__dict__ for e in _state(workbench, session_id).session.journal()]
+        return [e.__dict__ for e in _state(workbench, session_id).session.journal.entries()]
 
     @router.post("/sessions/{session_id}/undo")
     def undo(session_id: str, author: Author = "anonymous") -> dict[str, int]:

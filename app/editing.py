@@ -40,8 +40,10 @@ from slam6d.initial_guess import GuessResult, OctreeSearchConfig, config_for, oc
 from slam6d.loops import LoopHypothesis, diffuse_loop_correction, find_loop_hypotheses, loop_correction, verify
 from slam6d.model import ModelIndex
 from slam6d.octree import Octree, reduce_points
+from slam6d.pipeline import PipelineConfig
 from slam6d.posegraph import check_connected, optimize_pose_graph
 from slam6d.relax import NeighbourPair, RelaxationConfig, ScanModels, UnionIndex, match_edge, simultaneous_matching
+from slam6d.session import Session
 from slam6d.trace import to_jsonable
 
 # An edit "makes residuals jump" when the summary RMS grows by this factor and by at least this
@@ -181,7 +183,7 @@ class Editor:
 
     # -- shared pieces
 
-    def config(self, session_id: str) -> Any:
+    def config(self, session_id: str) -> PipelineConfig:
         return pipeline_config(self.workbench.state(session_id).session.config.engine)
 
     def icp_config(self, session_id: str) -> ICPConfig:
@@ -201,7 +203,7 @@ class Editor:
             self._models[session_id] = (id(sequence), models)
             return models
 
-    def _session(self, session_id: str) -> Any:
+    def _session(self, session_id: str) -> Session:
         return self.workbench.state(session_id).session
 
     def _check_scan(self, session_id: str, *indices: int) -> int:
@@ -289,14 +291,14 @@ class Editor:
         return work
 
     def store_hypotheses(self, session_id: str, hypotheses: Sequence[LoopHypothesis], author: str) -> None:
-        self._session(session_id).append(author, "loop_hypotheses", hypotheses_entry(hypotheses))
+        self._session(session_id).journal.append(author, "loop_hypotheses", hypotheses_entry(hypotheses))
         self.workbench.notify(session_id)
 
     def hypotheses(self, session_id: str) -> list[dict[str, Any]]:
         """The latest review list, each with its status in the current revision's graph."""
         session = self._session(session_id)
         latest: list[dict[str, Any]] = []
-        for entry in reversed(session.journal()):
+        for entry in reversed(session.journal.entries()):
             if entry.kind == "loop_hypotheses":
                 latest = entry.parameters.get("hypotheses", [])
                 break

@@ -36,7 +36,7 @@ def _build(cls: type, values: dict[str, Any], what: str) -> Any:
     return cls(**kwargs)
 
 
-def pipeline_config(engine: dict[str, Any], overrides: dict[str, Any] | None = None) -> Any:
+def pipeline_config(engine: dict[str, Any], overrides: dict[str, Any] | None = None) -> pipeline.PipelineConfig:
     """PipelineConfig from session parameters; ``icp.*`` keys may be given flat as ``icp_<name>`` too.
 
     ``display_*`` keys belong to the 3D view (e.g. ``display_voxel_size``) and are skipped here.
@@ -111,7 +111,7 @@ def store_run(workbench: Any, session_id: str, author: str, runner: Any, recorde
         session_id, runner.poses, author, "register", {**parameters, "trace": name}, graph=graph
     )
     if runner.report.loops:
-        session.append(author, "loop_hypotheses", hypotheses_entry(runner.report.loops))
+        session.journal.append(author, "loop_hypotheses", hypotheses_entry(runner.report.loops))
         workbench.notify(session_id)
     return {"revision": revision, "trace": name}
 

@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from app.workbench import EditError
+from slam6d.session import Session
 from slam6d.trace import read_trace, to_jsonable, write_trace
 
 TRACE_DIR = "traces"
@@ -68,7 +69,7 @@ class TraceRecorder:
         pipeline.step = recording_step
         return pipeline
 
-    def save(self, session: Any, initial_poses: list[Any], meta: dict[str, Any] | None = None) -> str:
+    def save(self, session: Session, initial_poses: list[Any], meta: dict[str, Any] | None = None) -> str:
         """Write the trace into the session folder; returns its name (for the journal entry)."""
         folder = Path(session.folder) / TRACE_DIR
         folder.mkdir(exist_ok=True)
@@ -80,7 +81,7 @@ class TraceRecorder:
         return name
 
 
-def list_traces(session: Any) -> list[dict[str, Any]]:
+def list_traces(session: Session) -> list[dict[str, Any]]:
     folder = Path(session.folder) / TRACE_DIR
     if not folder.is_dir():
         return []
@@ -90,7 +91,7 @@ def list_traces(session: Any) -> list[dict[str, Any]]:
     return found
 
 
-def load_trace(session: Any, name: str) -> dict[str, Any]:
+def load_trace(session: Session, name: str) -> dict[str, Any]:
     path = Path(session.folder) / TRACE_DIR / f"{name}.json"
     if not _NAME.match(name) or not path.is_file():
         raise EditError(f"no trace '{name}' in this session", 404)

@@ -554,7 +554,7 @@ class SessionViewer:
             f"revision {session.revision}"
         )
         self.revision_text.content = (
-            f"Revision {session.revision} (undo: {session.can_undo()}, redo: {session.can_redo()})"
+            f"Revision {session.revision} (undo: {session.journal.can_undo()}, redo: {session.journal.can_redo()})"
         )
 
     def on_revision(self) -> None:

@@ -20,10 +20,10 @@ from typing import Any
 import numpy as np
 
 from app.jobs import JobManager
-from slam6d.errors import Slam6dError
+from slam6d.errors import SessionError, Slam6dError
 from slam6d.geometry import Matrix
 from slam6d.scan import ScanSequence
-from slam6d.session import SESSION_FILE, Session, SessionError
+from slam6d.session import SESSION_FILE, Session
 
 _ID = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,99}$")
 _UPLOAD_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,199}$")
@@ -191,17 +191,17 @@ class Workbench:
         parameters: dict[str, Any] | None = None,
         graph: dict[str, Any] | None = None,
     ) -> int:
-        rev = self.state(session_id).session.commit(poses, author, kind, parameters, graph)
+        rev = self.state(session_id).session.journal.commit(poses, author, kind, parameters, graph)
         self._changed(session_id)
         return rev
 
     def undo(self, session_id: str, author: str) -> int:
-        rev = self.state(session_id).session.undo(author)
+        rev = self.state(session_id).session.journal.undo(author)
         self._changed(session_id)
         return rev
 
     def redo(self, session_id: str, author: str) -> int:
-        rev = self.state(session_id).session.redo(author)
+        rev = self.state(session_id).session.journal.redo(author)
         self._changed(session_id)
         return rev
 

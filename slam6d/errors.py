@@ -34,3 +34,12 @@ class RegistrationError(Slam6dError):
 
 class RelaxationError(Slam6dError):
     """Global relaxation cannot run or did not produce a usable result; the message says why."""
+
+
+class SessionError(Slam6dError):
+    """A session folder is missing, malformed, or an operation on its journal is impossible."""
+
+    def __init__(self, path: Path | str, message: str) -> None:
+        self.path = Path(path)
+        self.reason = message
+        super().__init__(f"{self.path}: {message}")

@@ -57,7 +57,7 @@ def test_gizmo_move_and_displacement_colours(viewer):
     edit.gizmo.position = np.asarray(edit.gizmo.position) + np.array([0.0, 0.0, 1.5])
     edit._move(Click(), refine=False)
     session = viewer.state.session
-    assert session.revision == 1 and session.journal()[-1].kind == "manual_move"
+    assert session.revision == 1 and session.journal.entries()[-1].kind == "manual_move"
     assert "residuals jumped" in viewer.warnings.content  # the guardrail is on screen
     loops.by_displacement.value = True
     loops._colour()

@@ -78,7 +78,7 @@ def test_keyframes_are_added_reordered_deleted_and_saved_in_the_session(client, 
     # saved in the session itself: a fresh Session object (another process) reads the same keyframes
     saved = Session.open(sessions_dir / "corridor").camera_path()
     assert [k["position"] for k in saved] == positions(after_delete)
-    entry = Session.open(sessions_dir / "corridor").journal()[-1]
+    entry = Session.open(sessions_dir / "corridor").journal.entries()[-1]
     assert (entry.kind, entry.author) == ("camera_path", "bob")
 
     cleared = client.put("/api/sessions/corridor/camera-path", json={"keyframes": []}).json()

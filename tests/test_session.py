@@ -8,8 +8,8 @@ import threading
 import numpy as np
 import pytest
 
-from slam6d.errors import FormatError
-from slam6d.session import JOURNAL_FILE, SESSION_FILE, Session, SessionError, list_sessions
+from slam6d.errors import FormatError, SessionError
+from slam6d.session import JOURNAL_FILE, SESSION_FILE, Session, list_sessions
 from tests.session_fixtures import true_poses, write_corridor_scans
 
 
@@ -31,7 +31,7 @@ def test_create_writes_config_that_reopens_identically(session, tmp_path):
 
 
 def test_load_sequence_is_canonical_and_creates_revision_zero(session):
-    assert session.journal() == []
+    assert session.journal.entries() == []
     sequence = session.load_sequence()
     assert len(sequence) == 3
     assert session.revision == 0
@@ -42,7 +42,7 @@ def test_load_sequence_is_canonical_and_creates_revision_zero(session):
     # the corridor floor is at z=0 in the world: canonical z up after conversion
     world = np.concatenate([s.world_points() for s in sequence.scans])
     assert world[:, 2].min() == pytest.approx(0.0, abs=0.01)
-    assert session.journal()[0].kind == "import"
+    assert session.journal.entries()[0].kind == "import"
 
 
 def test_cache_is_used_and_invalidated_when_a_source_changes(session, tmp_path):
@@ -62,26 +62,26 @@ def test_commit_undo_redo_and_history_is_append_only(session):
     base = session.poses()
     moved = [p.copy() for p in base]
     moved[2][0, 3] += 1.5
-    rev1 = session.commit(moved, "ana", "manual_move", {"scan": 2}, graph={"loops": [[0, 2]]})
+    rev1 = session.journal.commit(moved, "ana", "manual_move", {"scan": 2}, graph={"loops": [[0, 2]]})
     assert rev1 == 1 and session.revision == 1
     assert session.poses()[2][0, 3] == pytest.approx(base[2][0, 3] + 1.5)
     assert session.graph() == {"loops": [[0, 2]]}
-    assert session.can_undo() and not session.can_redo()
+    assert session.journal.can_undo() and not session.journal.can_redo()
 
-    assert session.undo("bob") == 0
+    assert session.journal.undo("bob") == 0
     assert session.poses()[2][0, 3] == pytest.approx(base[2][0, 3])
-    assert session.can_redo()
-    assert session.redo("ana") == 1
+    assert session.journal.can_redo()
+    assert session.journal.redo("ana") == 1
     assert session.revision == 1
     # old revisions stay readable
     assert np.allclose(session.poses(rev=0)[2], base[2])
 
     # a new edit after an undo clears the redo stack but keeps the undone revision in the store
-    session.undo("bob")
-    rev2 = session.commit(base, "carl", "relax")
-    assert rev2 == 2 and not session.can_redo()
-    assert session.revisions() == [0, 1, 2]
-    kinds = [(e.kind, e.author) for e in session.journal()]
+    session.journal.undo("bob")
+    rev2 = session.journal.commit(base, "carl", "relax")
+    assert rev2 == 2 and not session.journal.can_redo()
+    assert session.journal.revisions() == [0, 1, 2]
+    kinds = [(e.kind, e.author) for e in session.journal.entries()]
     assert kinds == [
         ("import", "system"),
         ("manual_move", "ana"),
@@ -90,16 +90,16 @@ def test_commit_undo_redo_and_history_is_append_only(session):
         ("undo", "bob"),
         ("relax", "carl"),
     ]
-    assert session.journal()[1].parameters == {"scan": 2}
-    assert all(e.time.endswith("+00:00") for e in session.journal())
+    assert session.journal.entries()[1].parameters == {"scan": 2}
+    assert all(e.time.endswith("+00:00") for e in session.journal.entries())
 
 
 def test_undo_at_the_start_and_redo_with_nothing_undone_fail_clearly(session):
     session.load_sequence()
     with pytest.raises(SessionError, match="nothing to undo"):
-        session.undo("ana")
+        session.journal.undo("ana")
     with pytest.raises(SessionError, match="nothing to redo"):
-        session.redo("ana")
+        session.journal.redo("ana")
 
 
 def test_unknown_revision_and_non_finite_poses_are_refused(session):
@@ -109,8 +109,8 @@ def test_unknown_revision_and_non_finite_poses_are_refused(session):
     bad = session.poses()
     bad[0][0, 3] = np.nan
     with pytest.raises(SessionError, match="non-finite"):
-        session.commit(bad, "ana", "edit")
-    assert session.revisions() == [0]
+        session.journal.commit(bad, "ana", "edit")
+    assert session.journal.revisions() == [0]
 
 
 def test_poses_without_loading_materialise_revision_zero(session):
@@ -127,7 +127,7 @@ def test_concurrent_commits_from_two_handles_serialise(session, tmp_path):
     def work(handle: Session, author: str) -> None:
         try:
             for _ in range(10):
-                handle.commit(base, author, "edit")
+                handle.journal.commit(base, author, "edit")
         except BaseException as exc:
             errors.append(exc)
 
@@ -137,7 +137,7 @@ def test_concurrent_commits_from_two_handles_serialise(session, tmp_path):
     for t in threads:
         t.join()
     assert not errors
-    assert session.revisions() == list(range(21))
+    assert session.journal.revisions() == list(range(21))
     # every revision's parent is the one current when it was made: a single chain
     with sqlite3.connect(tmp_path / "s" / JOURNAL_FILE) as conn:
         parents = [row[0] for row in conn.execute("SELECT parent FROM revisions ORDER BY number")]

@@ -53,7 +53,7 @@ def test_detect_and_accept_a_loop(loop_sessions, live_server, new_browser, artif
     accepted.scroll_into_view_if_needed()
     page.screenshot(path=str(artifacts_dir / "workbench_loop_accepted.png"))
     session = server.workbench.state("loop").session
-    entry = session.journal()[-1]
+    entry = session.journal.entries()[-1]
     assert (entry.kind, entry.author) == ("accept_loop", "ana")
     assert any(e["kind"] == "loop" for e in session.graph()["loops"])
 

@@ -73,7 +73,7 @@ def test_second_browser_sees_the_first_ones_edit(corridor_sessions, live_server,
     viewer = server.app.state.viewers.get("corridor")
     assert viewer.poses[3][2, 3] == pytest.approx(workbench.current_poses("corridor")[3][2, 3])
     assert np.allclose(viewer.poses[3], workbench.current_poses("corridor")[3])
-    undo = workbench.state("corridor").session.journal()[-1]
+    undo = workbench.state("corridor").session.journal.entries()[-1]
     assert (undo.kind, undo.author) == ("undo", "bob")
     # Ctrl+Shift+Z in the second browser redoes it, for both
     second.locator("body").press("Control+Shift+Z")
@@ -123,5 +123,5 @@ def test_run_registration_and_see_progress_finish(corridor_sessions, live_server
     assert job.status == "done", job.message
     frame.get_by_text("revision 1", exact=False).first.wait_for(timeout=10_000)
     page.screenshot(path=str(artifacts_dir / "workbench_registered.png"))
-    entry = server.workbench.state("corridor").session.journal()[-1]
+    entry = server.workbench.state("corridor").session.journal.entries()[-1]
     assert (entry.kind, entry.author) == ("register", "carla")
