@@ -38,12 +38,14 @@ from slam6d.geometry import Matrix, invert, transform_points
 from slam6d.icp import FloatArray, ICPConfig, icp
 from slam6d.initial_guess import GuessResult, OctreeSearchConfig, config_for, octree_guess
 from slam6d.loops import LoopHypothesis, diffuse_loop_correction, find_loop_hypotheses, loop_correction, verify
+from slam6d.lum import match_edge
 from slam6d.model import ModelIndex
 from slam6d.octree import Octree, reduce_points
 from slam6d.pipeline import PipelineConfig
 from slam6d.posegraph import check_connected, optimize_pose_graph
-from slam6d.relax import NeighbourPair, RelaxationConfig, ScanModels, UnionIndex, match_edge, simultaneous_matching
+from slam6d.relax import NeighbourPair, RelaxationConfig, ScanModels
 from slam6d.session import Session
+from slam6d.simultaneous import UnionIndex, simultaneous_matching
 from slam6d.trace import to_jsonable
 
 # An edit "makes residuals jump" when the summary RMS grows by this factor and by at least this

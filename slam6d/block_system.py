@@ -1,6 +1,6 @@
 """Sparse normal equations with 6x6 blocks, one block row per pose: the linear solve of a relaxation.
 
-The pose graph (:mod:`slam6d.posegraph`) and LUM's joint rounds (:mod:`slam6d.relax`) both end each
+The pose graph (:mod:`slam6d.posegraph`) and LUM's joint rounds (:mod:`slam6d.lum`) both end each
 Gauss-Newton iteration with such a system over a pattern that does not change between iterations,
 so :class:`BlockSystem` works the pattern out once and then only refills and refactors.
 """

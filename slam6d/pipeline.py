@@ -17,7 +17,7 @@ Stages (after Nüchter et al.):
    are loop hypotheses; the best by octree overlap is verified by ICP and, when accepted, its
    correction is diffused over the loop (:mod:`slam6d.loops`).
 3. Relaxation over the neighbour graph: the seed's simultaneous matching, or LUM-style pose-graph
-   least squares (:mod:`slam6d.relax`).
+   least squares (:mod:`slam6d.relax`, :mod:`slam6d.simultaneous`, :mod:`slam6d.lum`).
 
 Each scan is reduced once (one real point per voxel) and its kd-tree is built once; every stage
 reuses them.
@@ -48,18 +48,13 @@ from slam6d.loops import (
     loop_correction,
     verify,
 )
+from slam6d.lum import lum_relaxation
 from slam6d.model import ModelIndex, StackedModel
 from slam6d.octree import Occupancy, Octree, reduce_points
 from slam6d.pair import MIN_FITNESS, Outcome, better_fit, is_poor
-from slam6d.relax import (
-    Cancelled,
-    RelaxationConfig,
-    RelaxationResult,
-    ScanModels,
-    lum_relaxation,
-    simultaneous_matching,
-)
+from slam6d.relax import Cancelled, RelaxationConfig, RelaxationResult, ScanModels
 from slam6d.scan import ScanSequence
+from slam6d.simultaneous import simultaneous_matching
 from slam6d.trace import to_jsonable, write_trace
 
 MATCHING = ("metascan", "pairwise")

@@ -8,21 +8,15 @@ import pytest
 from slam6d.errors import RelaxationError
 from slam6d.geometry import invert, make_pose, pose_difference, pose_from_xyzrpy, so3_exp, so3_log
 from slam6d.icp import ICPConfig
+from slam6d.lum import lum_relaxation
 from slam6d.metrics import absolute_trajectory_error
 from slam6d.posegraph import (
     PoseEdge,
     optimize_pose_graph,
     point_pair_information,
 )
-from slam6d.relax import (
-    RelaxationConfig,
-    ScanModels,
-    carry_forward,
-    lum_relaxation,
-    neighbour_pairs,
-    pair_residual,
-    simultaneous_matching,
-)
+from slam6d.relax import RelaxationConfig, ScanModels, carry_forward, neighbour_pairs, pair_residual
+from slam6d.simultaneous import simultaneous_matching
 from tests.simulated_loop import simulated_loop
 
 
@@ -175,7 +169,7 @@ def test_neighbours_need_overlap(loop_scans) -> None:  # type: ignore[no-untyped
 @pytest.mark.parametrize("exponent", [1.0, 0.0])
 def test_lum_budget_grows_with_the_graph_and_weights_pairs_by_overlap(loop_scans, exponent: float) -> None:  # type: ignore[no-untyped-def]
     """Points per round follow the number of pairs; a pair's total pull follows overlap**exponent."""
-    from slam6d.relax import _edge_budget
+    from slam6d.lum import _edge_budget
 
     sim, models = loop_scans
     pairs = neighbour_pairs(models, sim.truth, min_pairs=250)
@@ -191,14 +185,15 @@ def test_lum_budget_grows_with_the_graph_and_weights_pairs_by_overlap(loop_scans
 
 def test_lum_pair_blocks_match_the_numpy_jacobians() -> None:
     """The compiled per-pair accumulation equals J^T W J and J^T W r built from explicit Jacobians."""
-    from slam6d.relax import _pair_blocks, _place
+    from slam6d.lum import _pair_blocks
+    from slam6d.relax import place
 
     rng = np.random.default_rng(3)
     n, pairs, scale = 400, 3, 0.05
     relative = np.stack([_noisy(np.eye(4), rng, 1.0, 0.3) for _ in range(pairs)])
     source = np.sort(rng.integers(0, pairs, n))
     p = rng.normal(0, 5, (n, 3))
-    q = _place(p, source, relative)
+    q = place(p, source, relative)
     np.testing.assert_allclose(q, np.einsum("nij,nj->ni", relative[source, :3, :3], p) + relative[source, :3, 3])
     m = q + rng.normal(0, 0.05, (n, 3))
     normals = rng.normal(size=(n, 3))
@@ -217,7 +212,7 @@ def test_lum_pair_blocks_match_the_numpy_jacobians() -> None:
 
 def test_lum_reports_the_residual_at_the_final_poses_and_stops_once_settled(loop_scans) -> None:  # type: ignore[no-untyped-def]
     """Before/after come from the rounds' own queries; after must still describe the returned poses."""
-    from slam6d.relax import _batches, _edge_budget, _round_residual
+    from slam6d.lum import _batches, _edge_budget, _round_residual
 
     sim, models = loop_scans
     config = RelaxationConfig()
