@@ -36,6 +36,18 @@ from typing import Any
 import numpy as np
 
 from slam6d.errors import RegistrationError, Slam6dError
+from slam6d.events import (
+    Event,
+    Finished,
+    IcpIterated,
+    LoopClosed,
+    LoopsDetected,
+    PipelineReport,
+    RelaxationProgressed,
+    ScanRegistered,
+    ScanStarted,
+    ScanSummary,
+)
 from slam6d.geometry import Matrix, invert
 from slam6d.icp import ICPConfig, ICPIteration, ICPResult, icp_iterations
 from slam6d.initial_guess import GuessResult, OctreeSearchConfig, extrapolate_odometry, octree_guess
@@ -65,21 +77,7 @@ PREPARE_AHEAD = 3
 GUESS_MODES = ("auto", "always", "never")
 RELAXATION = ("lum", "simultaneous", "none")
 
-__all__ = [
-    "Cancelled",
-    "Event",
-    "Finished",
-    "IcpIterated",
-    "LoopClosed",
-    "LoopsDetected",
-    "Pipeline",
-    "PipelineConfig",
-    "PipelineReport",
-    "RelaxationProgressed",
-    "ScanRegistered",
-    "ScanStarted",
-    "write_results",
-]
+__all__ = ["Cancelled", "Pipeline", "PipelineConfig", "write_results"]
 
 
 @dataclass(frozen=True)
@@ -154,89 +152,6 @@ class PipelineConfig:
             raise ValueError(f"metascan_scans must be at least 1, got {self.metascan_scans}")
         if self.max_range is not None and not self.max_range > 0:
             raise ValueError(f"max_range must be positive, got {self.max_range}")
-
-
-# ---------------------------------------------------------------- events
-
-
-@dataclass
-class ScanStarted:
-    index: int
-    initial: Matrix  # world_from_scan ICP starts from
-    guess: GuessResult | None
-    model_indices: list[int]
-
-
-@dataclass
-class IcpIterated:
-    index: int
-    iteration: ICPIteration
-    pose: Matrix  # world_from_scan after this iteration
-
-
-@dataclass
-class ScanRegistered:
-    index: int
-    pose: Matrix
-    result: ICPResult
-
-
-@dataclass
-class LoopsDetected:
-    hypotheses: list[LoopHypothesis]
-
-
-@dataclass
-class LoopClosed:
-    loop: LoopHypothesis
-    displacement: list[float]  # per scan, metres moved by the error diffusion
-
-
-@dataclass
-class RelaxationProgressed:
-    iteration: int
-    residual: float
-    moved: list[int]
-
-
-@dataclass
-class ScanSummary:
-    index: int
-    name: str
-    points: int
-    reduced_points: int
-    icp_iterations: int = 0
-    rms: float = float("nan")
-    fitness: float = float("nan")
-    converged: bool = False
-    octree_guess: bool = False
-    seconds: float = 0.0
-
-
-@dataclass
-class PipelineReport:
-    scans: int
-    stage_seconds: dict[str, float]
-    loops: list[LoopHypothesis]  # verified hypotheses (accepted or not)
-    loops_closed: list[tuple[int, int]]
-    relaxation: str
-    residual_before: float | None  # RMS point-to-plane distance over neighbour pairs, metres
-    residual_after: float | None
-    chi2_before: float | None
-    chi2_after: float | None
-    relaxation_iterations: int
-    neighbour_pairs: int
-    max_range: float
-    settings: dict[str, Any]
-    scan_summaries: list[ScanSummary] = field(default_factory=list)
-
-
-@dataclass
-class Finished:
-    report: PipelineReport
-
-
-Event = ScanStarted | IcpIterated | ScanRegistered | LoopsDetected | LoopClosed | RelaxationProgressed | Finished
 
 
 # ---------------------------------------------------------------- the pipeline

@@ -8,22 +8,12 @@ import numpy as np
 import pytest
 
 from slam6d.errors import RegistrationError
+from slam6d.events import Finished, IcpIterated, LoopClosed, RelaxationProgressed, ScanRegistered, ScanStarted
 from slam6d.geometry import UOS, make_pose, pose_difference
 from slam6d.io.frames import read_frames
 from slam6d.io.poses import read_kitti_poses
 from slam6d.metrics import absolute_trajectory_error
-from slam6d.pipeline import (
-    Cancelled,
-    Finished,
-    IcpIterated,
-    LoopClosed,
-    Pipeline,
-    PipelineConfig,
-    RelaxationProgressed,
-    ScanRegistered,
-    ScanStarted,
-    write_results,
-)
+from slam6d.pipeline import Cancelled, Pipeline, PipelineConfig, write_results
 from slam6d.scan import Scan, ScanSequence
 from tests.simulated_loop import simulated_loop
 
