@@ -20,8 +20,8 @@ from app.editing import editor_for
 from app.jobs import JobConflictError
 from app.panels import build_panels
 from app.panels.progress import show_job_progress
-from app.registration import pipeline_config, working_copy
-from app.traces import TraceRecorder
+from app.registration import pipeline_config
+from app.stepper import Stepper
 from app.workbench import Workbench
 from slam6d.errors import Slam6dError
 from slam6d.geometry import Matrix, rotation_to_quaternion
@@ -30,9 +30,6 @@ from slam6d.session import CACHE_DIR
 COLOUR_MODES = ("scan", "height", "residual")
 # what a button press may run into that the user can act on: shown as the message alone
 USER_ERRORS = (Slam6dError, ValueError, FileExistsError, JobConflictError)
-_PAIR_DATA = (255, 120, 0)
-_PAIR_MODEL = (60, 140, 255)
-_MAX_CORRESPONDENCES = 300
 _CLIENT_WAIT = 5.0  # s: how long the full pass waits for the browser that opened the session to connect
 _COARSE_SETTLE = 0.5  # s: time for a browser to take in the coarse pass before the full one follows
 
@@ -625,185 +622,6 @@ class SessionViewer:
         if self.stepper is not None:
             self.stepper.pause()
         self.server.stop()
-
-
-class Stepper:
-    """Registration one ICP iteration (or one scan) at a time, drawn as it goes.
-
-    Poses shown while stepping are the pipeline's working estimate; the journal gets a new
-    revision only when the run finishes.
-    """
-
-    def __init__(self, viewer: SessionViewer, author: str) -> None:
-        from slam6d.pipeline import Pipeline
-
-        self.viewer = viewer
-        self.author = author
-        config = pipeline_config(viewer.state.session.config.engine)
-        self.pipeline = Pipeline(working_copy(viewer.state.sequence()), config)
-        self.recorder = TraceRecorder()  # the stepped run is stored for replay too
-        self.recorder.attach(self.pipeline)
-        self.history: list[tuple[int, float, int]] = []
-        self.current: int | None = None
-        self.model: list[int] = []
-        self.events = 0
-        self.finished = False
-        self._playing = threading.Event()
-        self._lock = threading.Lock()
-
-    def as_dict(self) -> dict[str, Any]:
-        return {
-            "current": self.current,
-            "model": self.model,
-            "events": self.events,
-            "iterations": len(self.history),
-            "rms": [h[1] for h in self.history],
-            "playing": self._playing.is_set(),
-            "finished": self.finished,
-        }
-
-    def step(self) -> None:
-        with self._lock:
-            if not self.finished:
-                self._show_all([self.pipeline.step()])
-
-    def next_scan(self) -> None:
-        with self._lock:
-            if not self.finished:
-                self._show_all(self.pipeline.step_scan())
-
-    def _show_all(self, events: list[Any]) -> None:
-        """Draw under the view's lock: a view stopped meanwhile (its server gone) draws nothing."""
-        with self.viewer.lock:
-            if not self.viewer.stopped:
-                for event in events:
-                    self._show(event)
-
-    def play(self, rate: float = 30.0) -> None:
-        if self._playing.is_set():
-            return
-        self._playing.set()
-        self.viewer.play_button.disabled = True
-        self.viewer.pause_button.disabled = False
-        self.viewer.begin_playback(self._focus())
-
-        def loop() -> None:
-            try:
-                while self._playing.is_set() and not self.finished:
-                    start = time.monotonic()
-                    self.step()
-                    time.sleep(max(0.0, 1.0 / rate - (time.monotonic() - start)))
-            except Exception as exc:
-                self.viewer.warn(f"stepping stopped: {exc}")
-            finally:
-                self.pause()
-
-        threading.Thread(target=loop, name="stepper", daemon=True).start()
-
-    def pause(self) -> None:
-        was_playing = self._playing.is_set()
-        self._playing.clear()
-        if self.viewer.stopped:
-            return
-        self.viewer.play_button.disabled = False
-        self.viewer.pause_button.disabled = True
-        if was_playing:
-            self.viewer.end_playback()
-
-    def _focus(self) -> list[int]:
-        """The current pair: the scan being matched and the model scan nearest it in the sequence."""
-        if self.current is None:
-            return []
-        nearest = min(self.model, key=lambda m: abs(m - self.current), default=None)  # type: ignore[operator]
-        return [self.current] if nearest is None else [self.current, nearest]
-
-    def _show(self, event: Any) -> None:
-        viewer = self.viewer
-        self.events += 1
-        kind = type(event).__name__
-        if kind == "ScanStarted":
-            self._set_pair(int(event.index), [int(i) for i in event.model_indices])
-            self.history = []
-            viewer.set_poses(self._pose_list(event.index, event.initial), [event.index])
-        elif kind == "IcpIterated":
-            it = event.iteration
-            self.history.append((int(it.index), float(it.rms), int(it.pairs)))
-            viewer.set_poses(self._pose_list(event.index, event.pose), [event.index])
-            self._draw_correspondences(int(event.index), float(it.max_distance))
-            h = np.array(self.history, dtype=np.float64)
-            viewer.plot.data = (h[:, 0], h[:, 1], h[:, 2])
-            viewer.step_status.content = (
-                f"scan {event.index} · iteration {it.index} · RMS {it.rms:.4f} m · {it.pairs} pairs"
-            )
-        elif kind == "ScanRegistered":
-            viewer.set_poses(self._pose_list(event.index, event.pose), [event.index])
-            viewer.step_status.content = f"scan {event.index} registered (RMS {event.result.rms:.4f} m)"
-        elif kind == "Finished":
-            self.finished = True
-            self._set_pair(None, [])
-            viewer.server.scene.add_line_segments(
-                "/correspondences", np.zeros((1, 2, 3), np.float32), colors=(0, 0, 0), visible=False
-            )
-            from app.registration import store_run
-
-            store_run(viewer.workbench, viewer.session_id, self.author, self.pipeline, self.recorder, {"stepped": True})
-            viewer.step_status.content = "registration finished; stored as a new revision"
-        elif kind == "LoopsDetected":
-            accepted = sum(1 for h in event.hypotheses if getattr(h, "accepted", False))
-            viewer.step_status.content = f"{len(event.hypotheses)} loop hypotheses, {accepted} accepted"
-        elif kind in ("LoopClosed", "RelaxationProgressed"):
-            viewer.set_poses([np.asarray(p) for p in self.pipeline.poses])
-            viewer.step_status.content = (
-                f"loop {event.loop.i}-{event.loop.j} closed; largest move {max(event.displacement, default=0):.2f} m"
-                if kind == "LoopClosed"
-                else f"relaxation iteration {event.iteration}: residual {100 * event.residual:.2f} cm"
-            )
-        else:
-            viewer.step_status.content = kind
-
-    def _pose_list(self, index: int, pose: Any) -> list[Matrix]:
-        poses = [np.eye(4)] * (index + 1)
-        poses[index] = np.asarray(pose, dtype=np.float64)
-        return poses
-
-    def _set_pair(self, current: int | None, model: list[int]) -> None:
-        viewer = self.viewer
-        changed = {*viewer.highlight, *([current] if current is not None else []), *model}
-        self.current, self.model = current, model
-        viewer.highlight = {} if current is None else {**dict.fromkeys(model, _PAIR_MODEL), current: _PAIR_DATA}
-        for k in changed:
-            if k is not None and k < len(viewer.nodes):
-                viewer.paint(k)
-        if self._playing.is_set():
-            viewer.begin_playback(self._focus())
-
-    def _draw_correspondences(self, index: int, max_distance: float) -> None:
-        """Closest-point pairs between the current scan and its model, from the displayed points (capped)."""
-        from slam6d.icp import correspondences
-
-        viewer = self.viewer
-        if not self.model or max_distance <= 0:
-            return
-        world = [
-            viewer.local[m].astype(np.float64) @ viewer.poses[m][:3, :3].T + viewer.poses[m][:3, 3] for m in self.model
-        ]
-        model = np.concatenate(world)
-        data = viewer.local[index].astype(np.float64)
-        pose = viewer.poses[index]
-        data_idx, model_idx = correspondences(model, data, pose, max_distance, limit=_MAX_CORRESPONDENCES)
-        if len(data_idx) == 0:
-            return
-        origin = viewer.poses[0][:3, 3]
-        start = data[data_idx] @ pose[:3, :3].T + pose[:3, 3] - origin
-        end = model[model_idx] - origin
-        viewer.server.scene.add_line_segments(
-            "/correspondences",
-            np.stack([start, end], axis=1).astype(np.float32),
-            colors=(255, 255, 0),
-            thickness=1.0,
-            thickness_units="screen",
-            position=origin,
-        )
 
 
 class ViewerRegistry:
