@@ -33,7 +33,8 @@ from app.workbench import UnknownSessionError, Workbench
 from slam6d.camera_path import CameraPath, Keyframe, camera_path_from_dict, trajectory_path
 from slam6d.errors import Slam6dError
 from slam6d.geometry import Matrix, rotation_to_quaternion
-from slam6d.render import COLOR_MODES, SHADINGS, RenderOptions, render_fly_through, scene_from_sequence
+from slam6d.point_scene import COLOR_MODES, scene_from_sequence
+from slam6d.render import SHADINGS, RenderOptions, render_fly_through
 from slam6d.session import Session
 
 RENDERS_DIR = "renders"

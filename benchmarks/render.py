@@ -30,7 +30,8 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from slam6d.camera_path import CameraPath, Keyframe, trajectory_path  # noqa: E402
-from slam6d.render import Camera, PointScene, Renderer, RenderOptions, point_colors, render_frames, scene_from_points  # noqa: E402
+from slam6d.point_scene import PointScene, point_colors, scene_from_points  # noqa: E402
+from slam6d.render import Camera, Renderer, RenderOptions, render_frames  # noqa: E402
 
 
 def synthetic_hall(n: int, seed: int = 0) -> PointScene:
@@ -143,7 +144,7 @@ def main() -> None:
     bench(hall2m, "synthetic hall", 1280, 720, args.frames, args.passes, True, hall_path(hall2m))
     bench(hall1m, "synthetic hall", 640, 480, args.frames, args.passes, True, hall_path(hall1m))
     if args.balm:
-        from slam6d.render import load_render_input
+        from slam6d.point_scene import load_render_input
 
         data = ROOT.parent / "shared" / "data" / "balm_hall"
         scene, _ = load_render_input(

@@ -160,7 +160,8 @@ def render(
 ) -> None:
     """Render a fly-through video of the registered map, on the CPU (no browser or GPU needed)."""
     from slam6d.camera_path import load_camera_path, save_camera_path, trajectory_path
-    from slam6d.render import RenderOptions, load_render_input, render_fly_through
+    from slam6d.point_scene import load_render_input
+    from slam6d.render import RenderOptions, render_fly_through
 
     try:
         width, height_px = (int(v) for v in size.lower().split("x"))

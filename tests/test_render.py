@@ -12,19 +12,8 @@ from typer.testing import CliRunner
 
 from slam6d.errors import Slam6dError
 from slam6d.geometry import look_at, make_pose, rot_z
-from slam6d.render import (
-    Camera,
-    RenderCancelledError,
-    Renderer,
-    RenderOptions,
-    load_render_input,
-    point_colors,
-    render_fly_through,
-    render_frames,
-    scan_palette,
-    scene_from_points,
-    scene_from_sequence,
-)
+from slam6d.point_scene import load_render_input, point_colors, scan_palette, scene_from_points, scene_from_sequence
+from slam6d.render import Camera, RenderCancelledError, Renderer, RenderOptions, render_fly_through, render_frames
 from slam6d.scan import Scan, ScanSequence
 
 PLAIN = RenderOptions(shading="none", point_size=0.0, color_mode="scan")
