@@ -427,7 +427,7 @@ def city_world(layout: CityLayout, config: SimulationConfig, rng: np.random.Gene
 
     mesh = MeshBuilder()
     nx, ny = layout.blocks
-    margin = 60.0
+    margin = 60.0  # of terrain beyond the outer streets
     xs = np.arange(-margin, nx * pitch + margin + 1.0, 2.0)
     ys = np.arange(-margin, ny * pitch + margin + 1.0, 2.0)
     mesh.height_field(terrain, xs, ys)
@@ -466,36 +466,37 @@ def city_world(layout: CityLayout, config: SimulationConfig, rng: np.random.Gene
                 if (placed := _place(rng, route, low, high, 2.0, taken, np.full(2, 1.4 * crown))) is not None:
                     _tree(mesh, terrain, placed[0], crown, rng)
                     objects["trees"] += 1
-    # Along every street: trees on the pavements, cars parked at the kerb, lamp posts.
-    for horizontal in (True, False):
-        lines, length = (ny + 1, nx) if horizontal else (nx + 1, ny)
-        for line in range(lines):
-            for along in np.arange(10.0, length * pitch - 9.0, 6.0):
-                for side in (-1.0, 1.0):
-                    kind = rng.random()
-                    offset = {True: 6.5, False: 5.0}[kind < 0.3] if kind < 0.55 else 7.2
-                    here = (
-                        np.r_[along, line * pitch + side * offset]
-                        if horizontal
-                        else np.r_[line * pitch + side * offset, along]
-                    )
-                    if (along % pitch) < 12.0 or (along % pitch) > pitch - 12.0:
-                        continue  # keep intersections clear
-                    if kind < 0.3:
-                        crown = rng.uniform(1.2, 2.4)
-                        if route.distance(here)[0] > crown + 0.8:
-                            _tree(mesh, terrain, here, crown, rng)
-                            objects["trees"] += 1
-                    elif kind < 0.55:
-                        yaw = 0.0 if horizontal else np.pi / 2
-                        if route.distance(here)[0] > 2.3:
-                            _car(mesh, terrain, here, yaw)
-                            objects["cars"] += 1
-                    elif kind > 0.93 and route.distance(here)[0] > 1.0:
-                        _pole(mesh, terrain, here)
-                        objects["poles"] += 1
+    _line_streets(mesh, terrain, route, layout, rng, objects)
     vertices, triangles = mesh.build()
     return Scene(terrain, route, vertices, triangles, objects)
+
+
+def _line_streets(mesh: MeshBuilder, terrain: Terrain, route: Route, layout: CityLayout, rng: np.random.Generator,
+                  objects: dict[str, int]) -> None:  # fmt: skip
+    """Along both sides of every street, every 6 m: a tree on the pavement (30 %), a car parked at
+    the kerb (25 %), a lamp post (7 %) or nothing; intersections and the route's lanes kept clear."""
+    nx, ny = layout.blocks
+    for horizontal in (True, False):
+        lines, blocks = (ny + 1, nx) if horizontal else (nx + 1, ny)
+        for line in range(lines):
+            for along in np.arange(10.0, blocks * layout.pitch - 9.0, 6.0):
+                for side in (-1.0, 1.0):
+                    kind = rng.random()
+                    if not 12.0 <= along % layout.pitch <= layout.pitch - 12.0:
+                        continue  # an intersection
+                    centre = np.r_[along, line * layout.pitch] if horizontal else np.r_[line * layout.pitch, along]
+                    outward = np.r_[0.0, side] if horizontal else np.r_[side, 0.0]
+                    if kind < 0.3:
+                        crown = rng.uniform(1.2, 2.4)
+                        if route.distance(here := centre + 6.5 * outward)[0] > crown + 0.8:
+                            _tree(mesh, terrain, here, crown, rng)
+                            objects["trees"] += 1
+                    elif kind < 0.55 and route.distance(here := centre + 5.0 * outward)[0] > 2.3:
+                        _car(mesh, terrain, here, 0.0 if horizontal else np.pi / 2)
+                        objects["cars"] += 1
+                    elif kind > 0.93 and route.distance(here := centre + 7.2 * outward)[0] > 1.0:
+                        _pole(mesh, terrain, here)
+                        objects["poles"] += 1
 
 
 WORLDS: dict[str, World] = {

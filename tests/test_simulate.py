@@ -73,6 +73,21 @@ def test_same_seed_writes_identical_files_and_another_seed_does_not(tmp_path: Pa
     assert third["ground_truth_kitti.txt"] != first["ground_truth_kitti.txt"]
 
 
+@pytest.mark.parametrize(("world", "sensor", "motion"), [("indoor", "os1-64", "handheld"), ("outdoor", "hdl32", "car")])
+def test_every_world_sensor_and_motion_is_deterministic_by_seed(
+    tmp_path: Path, world: str, sensor: str, motion: str
+) -> None:
+    def config(seed: int) -> SimulationConfig:
+        return SimulationConfig(seed=seed, scans=3, world=world, sensor=sensor, motion=motion, points_per_scan=64 * 40)
+
+    simulate_session(tmp_path / "a", config(11))
+    simulate_session(tmp_path / "b", config(11))
+    simulate_session(tmp_path / "c", config(12))
+    first, second, third = (session_files(tmp_path / name) for name in "abc")
+    assert first == second
+    assert third["scan002.3d"] != first["scan002.3d"] and third["scan002.pose"] != first["scan002.pose"]
+
+
 def test_session_reads_back_with_the_odometry_as_poses(session: SimulatedSession) -> None:
     sequence = read_sequence(session.directory, "uos")
     assert len(sequence) == SMALL.scans
