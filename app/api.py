@@ -7,7 +7,6 @@ send the name the user typed), so the journal says who did what.
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Annotated, Any
 
 from fastapi import APIRouter, File, Form, Header, HTTPException, Query, Request, UploadFile
@@ -15,6 +14,7 @@ from fastapi.responses import PlainTextResponse, Response
 from pydantic import BaseModel, Field
 
 from app import exports
+from app.data_root import SourceRefusedError
 from app.jobs import JobConflictError
 from app.workbench import UnknownSessionError, UploadError, Workbench
 from slam6d.errors import Slam6dError
@@ -63,11 +63,15 @@ def build_router(workbench: Workbench) -> APIRouter:
 
     @router.post("/sessions", status_code=201, response_model=SessionSummary)
     def create_session(body: CreateFromFolder) -> dict[str, Any]:
-        """Create a session over a folder of scans that already lives on the server."""
-        if not Path(body.source).expanduser().exists():
+        """Create a session over a folder of scans under the server's data root (403 outside it)."""
+        try:
+            source = workbench.data_root.check(body.source)
+        except SourceRefusedError as exc:
+            raise HTTPException(exc.status, str(exc)) from None
+        if not source.exists():
             raise HTTPException(422, f"{body.source}: no such file or directory")
         try:
-            session = workbench.create_from_folder(body.name, Path(body.source), body.format, body.frame)
+            session = workbench.create_from_folder(body.name, source, body.format, body.frame)
         except Slam6dError as exc:
             raise HTTPException(422, str(exc)) from None
         return workbench.summary(session.id)

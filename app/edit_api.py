@@ -16,7 +16,9 @@ from pydantic import BaseModel, Field
 from app import traces
 from app.api import Author, _state
 from app.editing import editor_for
+from app.guard import requires
 from app.jobs import JobConflictError, Work
+from app.tokens import Role
 from app.workbench import EditError, Workbench
 from slam6d.errors import RelaxationError, Slam6dError
 
@@ -76,11 +78,11 @@ def build_edit_router(workbench: Workbench) -> APIRouter:
         """Find and verify loop hypotheses from the current poses (a job); the result is the review list."""
         return submit(session_id, "detect-loops", lambda: editor.detect_loops_job(session_id, author), author, {})
 
-    @router.post("/loops/{k}/accept")
+    @router.post("/loops/{k}/accept", openapi_extra=requires(Role.reviewer))
     def accept_loop(session_id: str, k: int, author: Author = "anonymous") -> dict[str, Any]:
         return call(session_id, lambda: editor.decide_loop(session_id, k, True, author))
 
-    @router.post("/loops/{k}/reject")
+    @router.post("/loops/{k}/reject", openapi_extra=requires(Role.reviewer))
     def reject_loop(session_id: str, k: int, author: Author = "anonymous") -> dict[str, Any]:
         return call(session_id, lambda: editor.decide_loop(session_id, k, False, author))
 

@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from app.data_root import DataRoot
 from app.jobs import JobManager
 from slam6d.errors import SessionError, Slam6dError
 from slam6d.geometry import Matrix
@@ -81,8 +82,14 @@ def slugify(name: str) -> str:
 
 
 class Workbench:
-    def __init__(self, sessions_dir: Path | str, max_upload_bytes: int = 512 * 1024 * 1024) -> None:
+    def __init__(
+        self,
+        sessions_dir: Path | str,
+        max_upload_bytes: int = 512 * 1024 * 1024,
+        data_root: DataRoot | None = None,
+    ) -> None:
         self.sessions_dir = Path(sessions_dir)
+        self.data_root = data_root or DataRoot(None, shared=False)
         self.sessions_dir.mkdir(parents=True, exist_ok=True)
         self.max_upload_bytes = max_upload_bytes
         self.jobs = JobManager()
@@ -142,7 +149,7 @@ class Workbench:
     def create_from_folder(
         self, name: str, source: Path, format_name: str | None = None, frame: str | None = None
     ) -> Session:
-        source = Path(source).expanduser().resolve()
+        source = self.data_root.check(source)  # before anything looks at the path
         folder = self._new_folder(name)
         try:
             session = Session.create(folder, name, source, format_name, frame)
