@@ -50,6 +50,7 @@ from app.tokens import Grant, Role, TokenStore
 
 TOKEN_COOKIE = "slam6d_token"
 ROLE_KEY = "x-role"
+ANY_SESSION_KEY = "x-any-session"
 READ_METHODS = frozenset({"GET", "HEAD", "OPTIONS"})
 LOOPBACK_NAMES = frozenset({"localhost", "localhost.localdomain", "ip6-localhost"})
 
@@ -57,9 +58,10 @@ LOOPBACK_NAMES = frozenset({"localhost", "localhost.localdomain", "ip6-localhost
 OPEN_GRANT = Grant(id="local", role=Role.owner, session=None, name="", created="", expires=None, revoked=False)
 
 
-def requires(role: Role) -> dict[str, Any]:
-    """``openapi_extra`` for a route whose state change needs a role other than ``editor``."""
-    return {ROLE_KEY: role.name}
+def requires(role: Role, any_session: bool = False) -> dict[str, Any]:
+    """``openapi_extra`` for a route that needs a role other than the default (viewer to read,
+    editor to change); ``any_session``: a server-wide route open to a single session's token too."""
+    return {ROLE_KEY: role.name, ANY_SESSION_KEY: True} if any_session else {ROLE_KEY: role.name}
 
 
 def is_loopback(host: str) -> bool:
@@ -169,6 +171,8 @@ def authorize(policy: GuardPolicy) -> Callable[[HTTPConnection], Awaitable[None]
         role = required_role(route, method)
         session = policy.session_of(dict(connection.path_params))
         connection.state.session = session
+        if session is None and (getattr(route, "openapi_extra", None) or {}).get(ANY_SESSION_KEY):
+            session = grant.session
         if not grant.allows(role, session):
             where = f"session '{session}'" if session else "this server"
             message = f"a {grant.role.name} token may not do this on {where}; it needs {role.name}"

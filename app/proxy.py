@@ -19,6 +19,8 @@ from starlette.concurrency import run_in_threadpool
 from starlette.websockets import WebSocketDisconnect
 from websockets.asyncio.client import connect as ws_connect
 
+from app.guard import OPEN_GRANT
+from app.view_roles import may_send
 from app.viewer import ViewerRegistry
 from app.workbench import UnknownSessionError
 
@@ -82,15 +84,16 @@ def add_viewer_routes(app: FastAPI, registry: ViewerRegistry) -> None:
                 else:
                     await websocket.send_text(message)
 
+        grant = websocket.scope.get("state", {}).get("grant", OPEN_GRANT)
+
         async def to_viser() -> None:
             while True:
                 message = await websocket.receive()
                 if message["type"] == "websocket.disconnect":
                     return
-                if message.get("bytes") is not None:
-                    await upstream.send(message["bytes"])
-                elif message.get("text") is not None:
-                    await upstream.send(message["text"])
+                payload = message.get("bytes") if message.get("bytes") is not None else message.get("text")
+                if payload is not None and may_send(grant, payload):  # a viewer's clicks stop here
+                    await upstream.send(payload)
 
         tasks = [asyncio.create_task(to_browser()), asyncio.create_task(to_viser())]
         try:

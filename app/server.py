@@ -23,6 +23,7 @@ from app.edit_api import build_edit_router
 from app.guard import GuardPolicy, RequestGuard, authorize, is_loopback, server_names, session_from_path
 from app.render_panel import build_render_router
 from app.revisions import RevisionHeaders, add_revision_errors, check_revision
+from app.sharing_api import build_sharing_router
 from app.tokens import TokenStore
 from app.workbench import UnknownSessionError, Workbench
 from slam6d.errors import Slam6dError
@@ -71,6 +72,7 @@ def create_app(
         add_guards(app, workbench, bind_host, shared if require_token is None else require_token, names)
     )
     app.include_router(build_router(workbench))
+    app.include_router(build_sharing_router(app.state.tokens))  # who am I, share links
     app.include_router(build_edit_router(workbench))  # loops, edges, moves, relaxation, guesses, traces
     app.include_router(build_render_router(workbench))  # fly-through: camera path, render jobs, downloads
 

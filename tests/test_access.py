@@ -277,3 +277,36 @@ def test_every_session_response_carries_its_revision_and_stale_if_match_is_412(s
     )
     assert move(shared, 2, 7.0, {**editor, "If-Match": "bogus"}).status_code == 400
     assert move(shared, 2, 7.0, {**editor, "If-Match": '"1"'}).status_code == 200
+
+
+# ------------------------------------------------------------------ share links
+
+
+def test_owners_create_and_revoke_share_links(shared: TestClient) -> None:
+    owner = bearer(shared, Role.owner, SESSION, name="olga")
+    assert shared.get("/api/me", headers=owner).json() == {
+        "role": "owner",
+        "name": "olga",
+        "session": SESSION,
+        "open": False,
+    }
+    created = shared.post(
+        f"/api/sessions/{SESSION}/tokens", json={"role": "viewer", "name": "vic", "expires": "1d"}, headers=owner
+    )
+    assert created.status_code == 201, created.text
+    link = created.json()["link"]
+    assert link.startswith(f"{ORIGIN}/sessions/{SESSION}?token=")
+    viewer = {"Authorization": f"Bearer {created.json()['token']}"}
+    assert shared.get("/api/me", headers=viewer).json()["role"] == "viewer"
+    listed = shared.get(f"/api/sessions/{SESSION}/tokens", headers=owner).json()
+    assert {g["name"] for g in listed} == {"olga", "vic"}
+    assert all("token" not in g and "digest" not in g for g in listed)
+    assert shared.get(f"/api/sessions/{SESSION}/tokens", headers=viewer).status_code == 403
+    editor = bearer(shared, Role.editor, SESSION)
+    denied = shared.post(f"/api/sessions/{SESSION}/tokens", json={"role": "viewer", "name": "x"}, headers=editor)
+    assert denied.status_code == 403
+    revoked = shared.delete(f"/api/sessions/{SESSION}/tokens/{created.json()['grant']['id']}", headers=owner)
+    assert revoked.status_code == 200 and revoked.json()["revoked"] is True
+    assert shared.get(f"/api/sessions/{SESSION}", headers=viewer).status_code == 401
+    bad = shared.post(f"/api/sessions/{SESSION}/tokens", json={"name": "x", "expires": "soon"}, headers=owner)
+    assert bad.status_code == 422 and "'soon' is not a duration" in bad.json()["detail"]
