@@ -12,13 +12,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from slam6d.errors import Slam6dError
+from app.errors import WorkbenchError
 
 
-class SourceRefusedError(Slam6dError):
+class SourceRefusedError(WorkbenchError):
     """A session source outside the data root (HTTP 403)."""
 
-    status = 403
+    default_status = 403
 
 
 @dataclass(frozen=True)
