@@ -39,7 +39,8 @@ class Relaxation:
         loops.sort(key=lambda e: (e["j"], e["i"]))
 
         def work(progress: Progress, cancel: Cancel) -> dict[str, Any]:
-            poses = context.poses(session_id)
+            start = context.workbench.head(session_id)  # the revision this job works from
+            poses = list(start.poses)
             before = [p.copy() for p in poses]
             for n, edge in enumerate(loops):
                 if cancel():
@@ -48,7 +49,7 @@ class Relaxation:
                 poses = diffuse_loop_correction(poses, hyp.i, hyp.j, loop_correction(poses, hyp))
                 progress("closing loops", n + 1, len(loops))
             params = {"loops": [[e["i"], e["j"]] for e in loops], "displacement": displacements(before, poses)}
-            return context.commit_checked(session_id, poses, author, "close_loops", params)
+            return context.commit_checked(session_id, poses, author, "close_loops", params, base=start.number)
 
         return work
 
@@ -71,7 +72,8 @@ class Relaxation:
 
         def work(progress: Progress, cancel: Cancel) -> dict[str, Any]:
             models = context.models(session_id)
-            poses = context.poses(session_id)
+            start = context.workbench.head(session_id)  # the revision this job works from
+            poses = list(start.poses)
             if method == "simultaneous":
                 result = simultaneous_matching(
                     models,
@@ -94,8 +96,9 @@ class Relaxation:
                     edge_progress=lambda done, total: progress("LUM: matching edges", done, total),
                 )
                 info = {"rounds": result.iterations, "chi2": [result.chi2_before, result.chi2_after]}
-            relaxed = result.poses
+            # held scans are no part of the change: someone may move them meanwhile without a conflict
+            relaxed = [poses[k] if k in fixed else pose for k, pose in enumerate(result.poses)]
             params = {"method": method, "fixed": list(fixed), **info, "displacement": displacements(poses, relaxed)}
-            return context.commit_checked(session_id, relaxed, author, f"relax_{method}", params)
+            return context.commit_checked(session_id, relaxed, author, f"relax_{method}", params, base=start.number)
 
         return work
