@@ -82,7 +82,8 @@ class StaleRevisionError(SessionError):
         self.head = head
         self.since = since
         who = ", ".join(f"revision {e.head} ({e.kind} by {e.author})" for e in since[-5:])
-        super().__init__(
+        _without_folder(
+            self,
             folder,
             f"the session is at revision {head}, not {expected}"
             + (f"; since then: {who}" if who else "")
@@ -103,10 +104,18 @@ class EditConflictError(SessionError):
             if entry is not None
             else " meanwhile"
         )
-        super().__init__(
+        _without_folder(
+            self,
             folder,
             f"started from revision {base}, but scan {listed} was changed{by}; nothing was changed, run it again",
         )
+
+
+def _without_folder(error: SessionError, folder: Path, message: str) -> None:
+    """Fill a SessionError whose message is for other users of a shared server: it names no server path."""
+    error.path = folder
+    error.reason = message
+    Exception.__init__(error, message)
 
 
 _expected_head: ContextVar[int | None] = ContextVar("expected_head", default=None)
