@@ -20,8 +20,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from slam6d.errors import RegistrationError, RelaxationError
-from slam6d.geometry import Matrix
-from slam6d.lum import match_edge
+from slam6d.geometry import Matrix, invert
+from slam6d.lum import match_edge, pair_information
 from slam6d.posegraph import check_connected, optimize_pose_graph
 from slam6d.relax import (
     NeighbourPair,
@@ -33,7 +33,7 @@ from slam6d.relax import (
     pair_residual,
 )
 
-__all__ = ["GraphEdge", "graph_relaxation", "trajectory_graph"]
+__all__ = ["GraphEdge", "graph_information", "graph_relaxation", "trajectory_graph"]
 
 
 @dataclass(frozen=True)
@@ -110,3 +110,13 @@ def graph_relaxation(
         chi2_after=chi2[-1] if chi2 else None,
         seconds=time.perf_counter() - began,
     )
+
+
+def graph_information(
+    models: ScanModels, poses: Sequence[Matrix], edges: Sequence[GraphEdge], config: RelaxationConfig
+) -> list[Matrix]:
+    """Per edge, LUM's information matrix of the relative pose at ``poses`` (canonical frame), without re-matching:
+    how well the scans' overlap pins that edge down, as a g2o export states it."""
+    return [
+        pair_information(models, NeighbourPair(e.i, e.j, 0), invert(poses[e.i]) @ poses[e.j], config) for e in edges
+    ]

@@ -5,7 +5,7 @@
 * :mod:`app.editing.relaxation` - loop closing and relaxation jobs.
 * :mod:`app.editing.guesses` - octree guesses for a pair, ICP from a chosen candidate.
 * :mod:`app.editing.context` - what they share: settings, reduced scans, residual-checked commits.
-* :mod:`app.editing.graph` - the pose-graph document a revision stores.
+* :mod:`slam6d.session_graph` (engine) - the pose-graph document a revision stores.
 
 The REST routes (:mod:`app.routes`) and the 3D view's panels both call one :class:`Editor` per
 workbench, so a button and a request do the same thing, and every change is one journal entry

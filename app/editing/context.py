@@ -10,20 +10,19 @@ from __future__ import annotations
 
 import threading
 from collections.abc import Callable, Sequence
-from dataclasses import replace
 from typing import Any
 
-from app.editing.graph import GraphDocument, graph_edge_list
 from app.workbench import EditError, Workbench
 from slam6d.engine_settings import pipeline_config
 from slam6d.geometry import Matrix
-from slam6d.icp import ICPConfig
+from slam6d.graph_relaxation import graph_information
 from slam6d.journal import Change
-from slam6d.octree import reduce_points
 from slam6d.pipeline import PipelineConfig
 from slam6d.relax import ScanModels
+from slam6d.relaxation_methods import reduced_models
 from slam6d.residuals import ResidualSummary, residual_jump, residual_summary
 from slam6d.session import Session
+from slam6d.session_graph import GraphDocument, graph_edge_list, graph_edges
 
 
 class EditContext:
@@ -41,20 +40,15 @@ class EditContext:
         """The session's ``[engine]`` settings, as ``slam6d run`` would read them."""
         return pipeline_config(self.session(session_id).config.engine)
 
-    def icp_config(self, session_id: str) -> ICPConfig:
-        # the models are reduced already, as in the pipeline
-        return replace(self.config(session_id).icp, data_voxel_size=0.0)
-
     def models(self, session_id: str) -> ScanModels:
-        """Each scan reduced to the engine's voxel size, with kd-trees built on first use."""
+        """Each scan reduced as the engine's pipeline and ``slam6d relax`` reduce it, kd-trees built on first use."""
         sequence = self.workbench.state(session_id).sequence()
         with self.lock:
             cached = self._models.get(session_id)
             if cached is not None and cached[0] == id(sequence):
                 return cached[1]
-            voxel = float(self.config(session_id).voxel_size)
-            reduced = [s.points[reduce_points(s.points, voxel)] if voxel > 0 else s.points for s in sequence.scans]
-            models = ScanModels(reduced, self.icp_config(session_id))
+            config = self.config(session_id)
+            models = reduced_models([s.points for s in sequence.scans], config.voxel_size, config.icp)
             self._models[session_id] = (id(sequence), models)
             return models
 
@@ -73,6 +67,12 @@ class EditContext:
         """The edges of ``graph`` (default: the current revision's) as the user sees them."""
         count = len(self.poses(session_id))
         return graph_edge_list(count, self.session(session_id).graph() if graph is None else graph)
+
+    def edge_information(self, session_id: str, poses: Sequence[Matrix], graph: dict[str, Any]) -> list[Matrix]:
+        """Per edge of ``graph`` (in :func:`graph_edge_list`'s order), the information matrix of its relative
+        pose at ``poses``, from the scans' overlap: what a g2o export states."""
+        edges = graph_edges(len(poses), graph)
+        return graph_information(self.models(session_id), poses, edges, self.config(session_id).relax)
 
     def residuals(
         self, session_id: str, poses: Sequence[Matrix] | None = None, graph: dict[str, Any] | None = None

@@ -7,12 +7,12 @@ from typing import Any
 import numpy as np
 
 from app.editing.context import EditContext
-from app.editing.graph import GraphDocument, edge_key, with_loop, without_loop
 from app.workbench import EditError
 from slam6d.errors import RegistrationError
 from slam6d.geometry import Matrix, invert
 from slam6d.icp import icp
 from slam6d.loops import LoopHypothesis, verify
+from slam6d.session_graph import GraphDocument, edge_key, with_loop, without_loop
 from slam6d.simultaneous import UnionIndex
 
 

@@ -13,10 +13,10 @@ from typing import Any
 import numpy as np
 
 from app.editing.context import EditContext
-from app.editing.graph import GraphDocument, edge_key, with_loop, without_loop
 from app.jobs import Cancel, Progress, Work
 from app.workbench import EditError
 from slam6d.loops import LoopHypothesis, detect_loops
+from slam6d.session_graph import GraphDocument, edge_key, with_loop, without_loop
 
 
 def hypothesis_dict(h: LoopHypothesis) -> dict[str, Any]:

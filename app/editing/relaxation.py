@@ -2,7 +2,9 @@
 
 Both refuse up front what cannot work (no loop to close; a graph whose scans are not all tied to a
 fixed scan, as :class:`~slam6d.errors.RelaxationError` naming the loose scans), so a job only
-starts when it can finish. The relaxation methods are the engine's, under the engine's names.
+starts when it can finish. The relaxation methods are the engine's, under the engine's names and
+with the same default as ``slam6d run`` (``lum``), so a session relaxes the same from the browser and
+from ``slam6d relax``.
 """
 
 from __future__ import annotations
@@ -16,13 +18,11 @@ from app.editing.context import EditContext
 from app.jobs import Cancel, Progress, Work
 from app.workbench import EditError
 from slam6d.errors import Cancelled
-from slam6d.graph_relaxation import GraphEdge, graph_relaxation
 from slam6d.loops import LoopHypothesis, diffuse_loop_correction, loop_correction
 from slam6d.posegraph import check_connected
+from slam6d.relaxation_methods import RELAXATION_METHODS, relax_poses
 from slam6d.residuals import displacements
-from slam6d.simultaneous import simultaneous_matching
-
-RELAX_METHODS = ("lum", "simultaneous")
+from slam6d.session_graph import graph_edges
 
 
 class Relaxation:
@@ -53,52 +53,48 @@ class Relaxation:
 
         return work
 
-    def check_relaxable(self, session_id: str, fixed: Sequence[int]) -> list[dict[str, Any]]:
-        """The graph's edges if relaxation can run; else RelaxationError / EditError with the reason."""
+    def check_relaxable(self, session_id: str, method: str, fixed: Sequence[int]) -> None:
+        """Refuse up front what cannot run: an unknown method, no fixed scan, and for ``graph`` a graph
+        whose scans are not all tied to a fixed one (RelaxationError naming the loose scans)."""
+        if method not in RELAXATION_METHODS:
+            raise EditError(f"unknown relaxation '{method}'; known: {', '.join(RELAXATION_METHODS)}", 422)
         count = self.context.check_scan(session_id, *fixed)
         if not fixed:
             raise EditError("no fixed scan: relaxation needs at least one scan held in place (usually scan 0)")
-        edges = self.context.edges(session_id)
-        check_connected(count, [(e["i"], e["j"]) for e in edges], fixed)
-        return edges
+        if method == "graph":
+            check_connected(count, [(e["i"], e["j"]) for e in self.context.edges(session_id)], fixed)
 
     def relax_job(self, session_id: str, author: str, method: str = "lum", fixed: Sequence[int] = (0,)) -> Work:
-        """Simultaneous matching (the engine's, over overlapping scans) or LUM over this session's graph."""
-        if method not in RELAX_METHODS:
-            raise EditError(f"unknown relaxation '{method}'; known: {', '.join(RELAX_METHODS)}", 422)
+        """The engine's relaxation by name (:func:`slam6d.relaxation_methods.relax_poses`) with the session's
+        settings, as ``slam6d relax SESSION --method METHOD`` runs it; ``graph`` relaxes over the session's graph."""
+        self.check_relaxable(session_id, method, fixed)
         context = self.context
-        edges = self.check_relaxable(session_id, fixed)
-        relax_config = context.config(session_id).relax
+        config = context.config(session_id).relax
 
         def work(progress: Progress, cancel: Cancel) -> dict[str, Any]:
             models = context.models(session_id)
-            start = context.workbench.head(session_id)  # the revision this job works from
-            poses = list(start.poses)
-            if method == "simultaneous":
-                result = simultaneous_matching(
-                    models,
-                    poses,
-                    fixed=fixed,
-                    config=relax_config,
-                    progress=lambda it, _r, _m: progress("simultaneous matching", it, it + 1),
-                    cancel=cancel,
-                )
-                info: dict[str, Any] = {"iterations": result.iterations}
-            else:
-                graph = [GraphEdge(e["i"], e["j"], e.get("transform")) for e in edges]
-                result = graph_relaxation(
-                    models,
-                    poses,
-                    graph,
-                    fixed,
-                    relax_config,
-                    cancel=cancel,
-                    edge_progress=lambda done, total: progress("LUM: matching edges", done, total),
-                )
-                info = {"rounds": result.iterations, "chi2": [result.chi2_before, result.chi2_after]}
+            revision = context.workbench.head(session_id)  # the revision this job works from
+            poses = list(revision.poses)
+            result = relax_poses(
+                method,
+                models,
+                poses,
+                graph_edges(len(poses), revision.graph),
+                fixed,
+                config,
+                progress=lambda done, _residual, _moved: progress(f"{method}: rounds", done, config.max_rounds),
+                cancel=cancel,
+                edge_progress=lambda done, total: progress(f"{method}: matching edges", done, total),
+            )
             # held scans are no part of the change: someone may move them meanwhile without a conflict
             relaxed = [poses[k] if k in fixed else pose for k, pose in enumerate(result.poses)]
-            params = {"method": method, "fixed": list(fixed), **info, "displacement": displacements(poses, relaxed)}
-            return context.commit_checked(session_id, relaxed, author, f"relax_{method}", params, base=start.number)
+            params = {
+                "method": method,
+                "fixed": list(fixed),
+                "rounds": result.iterations,
+                "residual_plane": [result.residual_before, result.residual_after],
+                "displacement": displacements(poses, relaxed),
+            }
+            return context.commit_checked(session_id, relaxed, author, f"relax_{method}", params, base=revision.number)
 
         return work

@@ -18,7 +18,11 @@ router = APIRouter(prefix="/api/sessions/{session_id}", tags=["relaxation"], dep
 
 
 class RelaxRequest(BaseModel):
-    method: str = Field("lum", description="'lum' (over the session's graph) or 'simultaneous'")
+    method: str = Field(
+        "lum",
+        description="'lum' (joint point-to-plane over overlapping scans, slam6d run's default), "
+        "'graph' (ICP per edge of the session's graph, then a pose-graph solve) or 'simultaneous'",
+    )
     fixed: list[int] = Field(default_factory=lambda: [0], description="scans held in place")
 
 

@@ -130,17 +130,17 @@ class SceneStream(ViewCore):
             self.shown_revision = self.state.session.revision
 
     def _send_scans(self, names: list[str], replace: bool = True) -> None:
-        """All scans in one websocket message, so the browser's first frame with points shows them all.
+        """All scans in one atomic batch, so a browser never draws a scan half-replaced.
 
         A node added under an existing name takes the old one's place in the same batch, so a
         second pass never leaves a frame with a scan missing.
 
-        viser sends at most 128 messages (4 per scan) per websocket message and the browser
-        redraws after each one; the window is widened to hold the whole map. (Hiding the scans
-        until all are sent does not work: viser drops a queued "hidden" when "shown" follows.)
+        Missing upstream (viser 1.1.1): a batch reaches the browser in websocket messages of at
+        most 128 scene messages (``AsyncMessageBuffer.max_window_size``, with no public setting),
+        about 4 per scan, and the browser redraws after each; a map of more than ~30 scans can
+        therefore show its first pass in two or three steps. (Hiding the scans until all are sent
+        does not work either: viser drops a queued "hidden" when "shown" follows.)
         """
-        buffer = self.server._websock_server.get_message_buffer()  # no public setting for this
-        buffer.max_window_size = max(buffer.max_window_size, 4 * len(self.local) + 1024)  # + a new client's GUI backlog
         with self.server.atomic():
             if replace:
                 for node in self.nodes:

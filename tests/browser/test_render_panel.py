@@ -22,7 +22,6 @@ def input_of(frame, label: str):  # type: ignore[no-untyped-def]
 
 
 def test_add_two_keyframes_render_and_download(corridor_sessions, live_server, new_browser, artifacts_dir, tmp_path):
-    started = time.monotonic()
     server = live_server(corridor_sessions)
     page = new_browser()
     page.goto(f"{server.url}/sessions/corridor")
@@ -97,4 +96,3 @@ def test_add_two_keyframes_render_and_download(corridor_sessions, live_server, n
     assert max(float(img.std()) for img in images) > 5.0  # the map is in the frames, not just background
     jobs = [j for j in server.workbench.jobs.for_session("corridor") if j.kind == "render"]
     assert len(jobs) == 1 and jobs[0].result["path"] == "keyframes"
-    assert time.monotonic() - started < 40

@@ -9,6 +9,7 @@ import numpy as np
 from app.editing import editor_for
 from app.view import display
 from app.view.panels.host import ViewerHost
+from slam6d.relaxation_methods import RELAXATION_METHODS
 from slam6d.residuals import displacements
 
 _NONE = "—"
@@ -27,7 +28,7 @@ class LoopsPanel:
             self.accept = gui.add_button("Accept loop")
             self.reject = gui.add_button("Reject loop")
             self.close = gui.add_button("Close loops (error diffusion)")
-            self.method = gui.add_dropdown("Relaxation", ("lum", "simultaneous"), initial_value="lum")
+            self.method = gui.add_dropdown("Relaxation", RELAXATION_METHODS, initial_value="lum")
             self.relax = gui.add_button("Relax")
             self.before = gui.add_checkbox("Show before (parent revision)", False)
             self.by_displacement = gui.add_checkbox("Colour by displacement", False)

@@ -1,4 +1,8 @@
-"""A revision's pose graph as the workbench stores it, and the edges a user sees in it.
+"""A session revision's pose graph: the document the journal stores, and the edges it stands for.
+
+The workbench edits it (accepting loops, adding and deleting edges); ``slam6d relax SESSION
+--method graph`` and the workbench's graph relaxation read it the same way, through
+:func:`graph_edges`.
 
 The pose graph of a revision (``Revision.graph``) is a small JSON document::
 
@@ -12,6 +16,10 @@ The pose graph of a revision (``Revision.graph``) is a small JSON document::
 from __future__ import annotations
 
 from typing import Any
+
+import numpy as np
+
+from slam6d.graph_relaxation import GraphEdge
 
 GraphDocument = dict[str, Any]
 
@@ -52,3 +60,11 @@ def without_loop(graph: GraphDocument, i: int, j: int) -> GraphDocument:
     """``graph`` without its loop or manual edge between scans i and j."""
     key = edge_key(i, j)
     return {**graph, "loops": [e for e in graph.get("loops", []) if edge_key(int(e["i"]), int(e["j"])) != key]}
+
+
+def graph_edges(count: int, graph: GraphDocument) -> list[GraphEdge]:
+    """The edges of a revision of ``count`` scans as relaxation takes them (loops with their ICP transforms)."""
+    return [
+        GraphEdge(e["i"], e["j"], None if e.get("transform") is None else np.asarray(e["transform"], dtype=np.float64))
+        for e in graph_edge_list(count, graph)
+    ]
