@@ -19,7 +19,8 @@ from starlette.websockets import WebSocketDisconnect
 from websockets.asyncio.client import connect as ws_connect
 
 from app.guard import OPEN_GRANT
-from app.view_roles import may_send
+from app.view.presence import Presence
+from app.view_roles import may_send, message_type
 
 _PASSED_HEADERS = ("content-type", "content-encoding", "cache-control", "etag", "last-modified")
 
@@ -38,8 +39,19 @@ async def forward_file(client: httpx.AsyncClient, port: int, path: str, request:
     return Response(body, status_code=upstream.status_code, headers=passed)
 
 
-async def forward_socket(websocket: WebSocket, port: int) -> None:
-    """Join the browser's websocket to the view's internal one until either side closes."""
+ANNOUNCE_TIMEOUT = 5.0  # seconds a browser's first camera may take to register it with viser
+_announcing: dict[int, asyncio.Lock] = {}  # per viewer port: one browser announced at a time
+
+
+async def forward_socket(
+    websocket: WebSocket, port: int, presence: Presence | None = None, key: str | None = None
+) -> None:
+    """Join the browser's websocket to the view's internal one until either side closes.
+
+    With ``presence`` and a view ``key`` (the session page's own 3D view), the browser's first camera
+    message - the one that makes viser register it - goes through :meth:`Presence.announce`, so the
+    view knows that client's name and role.
+    """
     offered = [p for p in websocket.scope.get("subprotocols", []) if p.startswith("viser-v")]
     try:
         upstream = await ws_connect(
@@ -63,14 +75,30 @@ async def forward_socket(websocket: WebSocket, port: int) -> None:
                 await websocket.send_text(message)
 
     grant = websocket.scope.get("state", {}).get("grant", OPEN_GRANT)
+    unannounced = presence is not None and key is not None
+
+    async def announce_with(payload: bytes) -> None:
+        assert presence is not None and key is not None
+        lock = _announcing.setdefault(port, asyncio.Lock())
+        async with lock:
+            done = presence.announce(key, grant)
+            await upstream.send(payload)
+            if not await asyncio.to_thread(done.wait, ANNOUNCE_TIMEOUT):
+                presence.withdraw(done)
 
     async def to_viser() -> None:
+        nonlocal unannounced
         while True:
             message = await websocket.receive()
             if message["type"] == "websocket.disconnect":
                 return
             payload = message.get("bytes") if message.get("bytes") is not None else message.get("text")
-            if payload is not None and may_send(grant, payload):  # a viewer's clicks and drags stop here
+            if payload is None or not may_send(grant, payload):  # a viewer's clicks and drags stop here
+                continue
+            if unannounced and isinstance(payload, bytes) and message_type(payload) == "ViewerCameraMessage":
+                unannounced = False
+                await announce_with(payload)
+            else:
                 await upstream.send(payload)
 
     tasks = [asyncio.create_task(to_browser()), asyncio.create_task(to_viser())]

@@ -32,6 +32,7 @@ from app.view.panels.fly_through import FlyThroughPanel
 from app.view.panels.progress import show_job_progress
 from app.view.picking import Picking
 from app.view.playback import Playback
+from app.view.presence import presence_of
 from app.view.scene_stream import SceneStream
 from app.view.stepping import Stepper
 from app.workbench import Workbench
@@ -96,6 +97,9 @@ class SessionViewer(SceneStream, Colouring, Picking, Playback, GraphOverlay):
         self.client_seen.set()
 
     def author(self, event: Any) -> str:
+        person = presence_of(self).people.get(getattr(event, "client_id", -1))
+        if person is not None and person.grant.name:  # a token's holder, whatever the name field says
+            return person.grant.name
         field = self.client_names.get(getattr(event, "client_id", -1))
         return (field.value.strip() if field is not None else "") or "anonymous"
 

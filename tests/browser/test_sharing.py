@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import time
 
 import httpx
 import numpy as np
@@ -102,3 +103,100 @@ def test_two_browsers_moving_different_scans_at_once_both_keep_their_moves(
     assert np.allclose(final[2], targets[2]) and np.allclose(final[4], targets[4])
     journal = server.workbench.state("corridor").session.journal.entries()
     assert sorted(e.author for e in journal if e.kind == "manual_move") == ["ann", "bob"]
+
+
+def test_a_comment_added_in_the_page_stays_on_its_scan_after_relaxation(corridor_sessions, live_server, new_browser):
+    from app.view import comment_labels
+
+    server = live_server(corridor_sessions, require_token=True)
+    secret, _ = server.app.state.tokens.issue(Role.reviewer, "corridor", name="rita")
+    page = new_browser()
+    page.goto(f"{server.url}/sessions/corridor?token={secret}")
+    viewer_frame(page).get_by_text("points shown").wait_for(timeout=60_000)
+    page.locator("#comments-open").click()
+    form = page.locator("#comment-form")
+    form.locator("[name=on]").select_option("scan")
+    form.locator("[name=i]").fill("3")
+    form.locator("[name=point]").fill("1 0.5 0.8")
+    form.locator("[name=text]").fill("double wall here")
+    form.locator("button[type=submit]").click()
+    page.locator("#comment-1").get_by_text("double wall here").wait_for(timeout=10_000)
+    assert "rita" in page.locator("#comment-1").inner_text()
+
+    editor, _ = server.app.state.tokens.issue(Role.editor, "corridor", name="ed")
+    started = httpx.post(
+        f"{server.url}/api/sessions/corridor/relax",
+        json={"method": "graph", "fixed": [0]},
+        headers={"Authorization": f"Bearer {editor}"},
+    )
+    assert started.status_code == 202, started.text
+    job = server.workbench.jobs.wait(started.json()["id"], timeout=120)
+    assert job.status == "done", job.message
+    pose = server.workbench.current_poses("corridor")[3]
+    expected = (pose @ np.array([1.0, 0.5, 0.8, 1.0]))[:3]
+    listed = httpx.get(f"{server.url}/api/sessions/corridor/comments", headers={"Authorization": f"Bearer {secret}"})
+    assert listed.json()[0]["world"] == pytest.approx(expected, abs=1e-9)
+    viewer = server.app.state.viewers.get("corridor")
+    deadline = time.monotonic() + 20
+    while time.monotonic() < deadline:  # the 3D view's label follows the scan
+        labels = comment_labels._drawn.get(viewer, [])
+        if labels and np.allclose(labels[0].position, expected, atol=1e-6):
+            break
+        time.sleep(0.2)
+    assert labels and np.allclose(labels[0].position, expected, atol=1e-6)
+
+
+def _wait(condition, timeout: float = 30.0, what: str = "condition"):  # type: ignore[no-untyped-def]
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        found = condition()
+        if found:
+            return found
+        time.sleep(0.2)
+    raise AssertionError(f"timed out waiting for {what}")
+
+
+def test_presence_shows_the_other_browser_as_a_frustum_and_follow_takes_its_view(
+    corridor_sessions, live_server, new_browser
+):
+    from app.view.presence import presence_of
+
+    server = live_server(corridor_sessions, require_token=True)
+    pages, keys = {}, {}
+    for name in ("ann", "bob"):
+        secret, _ = server.app.state.tokens.issue(Role.editor, "corridor", name=name)
+        page = new_browser()
+        page.goto(f"{server.url}/sessions/corridor?token={secret}")
+        viewer_frame(page).get_by_text("points shown").wait_for(timeout=60_000)
+        pages[name] = page
+    presence = presence_of(server.app.state.viewers.get("corridor"))
+    people = _wait(lambda: len(presence.listed()) == 2 and presence.listed(), what="both browsers listed")
+    assert sorted((p["name"], p["role"]) for p in people) == [("ann", "editor"), ("bob", "editor")]
+    keys = {p["name"]: p["key"] for p in people}
+    ann, bob = presence.person(keys["ann"]), presence.person(keys["bob"])
+    assert ann is not None and bob is not None
+    pages["bob"].locator("#people").get_by_text("ann (editor)").wait_for(timeout=10_000)
+    # bob's scene holds ann's frustum where ann's camera is (and not his own)
+    drawn = _wait(lambda: presence.frustums.get((bob.client.client_id, ann.client.client_id)), what="ann's frustum")
+    assert np.allclose(drawn.frustum.position, ann.client.camera.position, atol=1e-6)
+    assert (bob.client.client_id, bob.client.client_id) not in presence.frustums
+
+    pages["bob"].locator(f".person[data-key='{keys['ann']}'] button").click()  # Follow
+    _wait(lambda: presence.person(keys["bob"]).follows == keys["ann"], what="bob following ann")
+    place = {"position": [3.0, -6.0, 4.0], "look_at": [3.0, 0.0, 0.5], "up": [0.0, 0.0, 1.0], "fov_deg": 55.0}
+    ann_token = pages["ann"].context.cookies()[0]["value"]
+    moved = httpx.post(
+        f"{server.url}/api/sessions/corridor/presence/{keys['ann']}/camera",
+        json=place,
+        headers={"Authorization": f"Bearer {ann_token}"},
+    )
+    assert moved.status_code == 200, moved.text
+    _wait(lambda: np.allclose(bob.client.camera.position, place["position"], atol=1e-3), what="bob's view following")
+    assert np.allclose(bob.client.camera.look_at, place["look_at"], atol=1e-3)
+    # nobody may steer someone else's view
+    other = httpx.post(
+        f"{server.url}/api/sessions/corridor/presence/{keys['bob']}/camera",
+        json=place,
+        headers={"Authorization": f"Bearer {ann_token}"},
+    )
+    assert other.status_code == 403
