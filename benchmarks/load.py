@@ -149,8 +149,10 @@ def relaxer(url: str, token: str, stop: float, record: Recorder) -> None:
                 time.sleep(0.2)
             if job["status"] == "done":
                 record.note("relaxations done")
+            elif "was changed by" in job.get("message", ""):
+                record.note("relaxations refused (a scan they move was edited meanwhile)")
             else:
-                record.note(f"relaxations {job['status']}: {job.get('message', '')[:60]}")
+                record.note(f"relaxations {job['status']}: {job.get('message', '')[:80]}")
 
 
 def corridor_sessions(folder: Path, scans: int, points: int) -> Path:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import time
+from urllib.parse import unquote
 
 import httpx
 import numpy as np
@@ -200,3 +201,48 @@ def test_presence_shows_the_other_browser_as_a_frustum_and_follow_takes_its_view
         headers={"Authorization": f"Bearer {ann_token}"},
     )
     assert other.status_code == 403
+
+
+def test_a_permalink_restores_revision_and_camera_in_a_fresh_browser(corridor_sessions, live_server, new_browser):
+    from app.view.presence import presence_of
+
+    server = live_server(corridor_sessions, require_token=True)
+    secret, _ = server.app.state.tokens.issue(Role.editor, "corridor", name="ann")
+    page = new_browser()
+    page.goto(f"{server.url}/sessions/corridor?token={secret}")
+    viewer_frame(page).get_by_text("points shown").wait_for(timeout=60_000)
+    presence = presence_of(server.app.state.viewers.get("corridor"))
+    key = _wait(lambda: presence.listed() and presence.listed()[0]["key"], what="ann's view")
+    place = {"position": [2.0, -5.0, 3.0], "look_at": [2.5, 0.0, 0.5], "up": [0.0, 0.0, 1.0], "fov_deg": 50.0}
+    headers = {"Authorization": f"Bearer {secret}"}
+    assert httpx.post(
+        f"{server.url}/api/sessions/corridor/presence/{key}/camera", json=place, headers=headers
+    ).is_success
+
+    def address() -> str:  # asked of the page: the history API changes it without a navigation
+        return str(page.evaluate("location.href"))
+
+    link = _wait(lambda: "cam=2.000,-5.000,3.000" in unquote(address()) and address(), what="the view in the address")
+    revision = server.workbench.state("corridor").session.revision
+    assert f"rev={revision}&" in link and "token" not in link
+
+    reader, _ = server.app.state.tokens.issue(Role.viewer, "corridor", name="vic")
+    fresh = new_browser()
+    fresh.goto(f"{link}&token={reader}")
+    viewer_frame(fresh).get_by_text("points shown").wait_for(timeout=120_000)  # a loaded CI machine is slow
+    vic = _wait(lambda: next((p for p in presence.listed() if p["name"] == "vic"), None), what="vic's view")
+    placed = _wait(
+        lambda: np.allclose(presence.person(vic["key"]).camera()["position"], place["position"], atol=1e-3),
+        what="the link's camera",
+    )
+    assert placed
+    camera = presence.person(vic["key"]).camera()
+    assert np.allclose(camera["look_at"], place["look_at"], atol=1e-3) and camera["fov_deg"] == pytest.approx(50.0)
+    assert fresh.locator("#old-revision").is_hidden()  # the link's revision is the current one
+
+    pose = server.workbench.current_poses("corridor")[2].copy()
+    pose[2, 3] += 0.3
+    httpx.post(f"{server.url}/api/sessions/corridor/scans/2/pose", json={"pose": pose.tolist()}, headers=headers)
+    fresh.locator("#old-revision").get_by_text(f"revision {revision};").wait_for(timeout=10_000)  # banner to the head
+    assert fresh.locator("#undo").is_hidden()  # read-only
+    assert fresh.locator("#old-revision a").get_attribute("href") == "/sessions/corridor"
