@@ -16,8 +16,9 @@ from starlette.concurrency import run_in_threadpool
 from app.errors import EditError, UnknownSessionError
 from app.guard import OPEN_GRANT, requires
 from app.tokens import Role
+from app.view.names import AUTHOR_COOKIE, name_from_cookie
 from app.view.presence import Person, Presence, presence_of
-from app.view.proxy import forward_file, forward_socket
+from app.view.proxy import forward_file, forward_socket, open_upstream
 from app.view.registry import ViewerRegistry
 
 router = APIRouter()
@@ -42,6 +43,7 @@ async def viser_files(session_id: str, path: str, request: Request) -> Response:
 
 @router.websocket("/viser/{session_id}")
 async def viser_socket(websocket: WebSocket, session_id: str) -> None:
+    """The 3D view's websocket; the browser arrives under the name its page put in the author cookie."""
     await _socket(websocket, session_id, None)
 
 
@@ -54,12 +56,16 @@ async def viser_socket_as(websocket: WebSocket, session_id: str, view_key: str) 
 async def _socket(websocket: WebSocket, session_id: str, view_key: str | None) -> None:
     registry: ViewerRegistry = websocket.app.state.viewers
     try:
-        port = await _viewer_port(registry, session_id)
+        viewer = await run_in_threadpool(registry.get, session_id)
     except UnknownSessionError:
         await websocket.close(code=4404)
         return
-    viewer = registry.existing(session_id)
-    await forward_socket(websocket, port, None if viewer is None else presence_of(viewer), view_key)
+    grant = websocket.scope.get("state", {}).get("grant", OPEN_GRANT)
+    # a token's holder arrives under the token's name, whatever the page's name field says
+    name = grant.name if grant is not OPEN_GRANT else name_from_cookie(websocket.cookies.get(AUTHOR_COOKIE))
+    upstream = await viewer.names.admit(name, lambda: open_upstream(websocket, viewer.port))
+    if upstream is not None:
+        await forward_socket(websocket, upstream, presence_of(viewer), view_key)
 
 
 @router.get("/api/sessions/{session_id}/view", tags=["view"])

@@ -16,6 +16,7 @@ import websockets
 from fastapi import Request, WebSocket
 from fastapi.responses import Response
 from starlette.websockets import WebSocketDisconnect
+from websockets.asyncio.client import ClientConnection
 from websockets.asyncio.client import connect as ws_connect
 
 from app.guard import OPEN_GRANT
@@ -39,22 +40,12 @@ async def forward_file(client: httpx.AsyncClient, port: int, path: str, request:
     return Response(body, status_code=upstream.status_code, headers=passed)
 
 
-ANNOUNCE_TIMEOUT = 5.0  # seconds a browser's first camera may take to register it with viser
-_announcing: dict[int, asyncio.Lock] = {}  # per viewer port: one browser announced at a time
-
-
-async def forward_socket(
-    websocket: WebSocket, port: int, presence: Presence | None = None, key: str | None = None
-) -> None:
-    """Join the browser's websocket to the view's internal one until either side closes.
-
-    With ``presence`` and a view ``key`` (the session page's own 3D view), the browser's first camera
-    message - the one that makes viser register it - goes through :meth:`Presence.announce`, so the
-    view knows that client's name and role.
-    """
+async def open_upstream(websocket: WebSocket, port: int) -> ClientConnection | None:
+    """The view's internal websocket for this browser, with the subprotocol it offered; None (and the
+    browser's socket closed) when the view does not answer."""
     offered = [p for p in websocket.scope.get("subprotocols", []) if p.startswith("viser-v")]
     try:
-        upstream = await ws_connect(
+        return await ws_connect(
             f"ws://127.0.0.1:{port}",
             subprotocols=[websockets.Subprotocol(p) for p in offered] or None,
             max_size=None,
@@ -64,8 +55,34 @@ async def forward_socket(
         )
     except (OSError, websockets.InvalidHandshake, TimeoutError):
         await websocket.close(code=1011)
-        return
+        return None
+
+
+ANNOUNCE_TIMEOUT = 5.0  # seconds a browser's first camera may take to register it with viser
+_announcing: dict[int, asyncio.Lock] = {}  # per presence: one browser announced at a time
+
+
+async def forward_socket(
+    websocket: WebSocket, upstream: ClientConnection, presence: Presence | None = None, key: str | None = None
+) -> None:
+    """Accept the browser's websocket and join it to the view's internal one until either side closes.
+
+    What a browser below editor sends is filtered (:mod:`app.view_roles`). With ``presence`` and a view
+    ``key`` (the session page's own 3D view), the browser's first camera message - the one that makes
+    viser register it - goes through :meth:`Presence.announce`, so the view knows that client's key,
+    name and role.
+    """
     await websocket.accept(subprotocol=upstream.subprotocol)
+    grant = websocket.scope.get("state", {}).get("grant", OPEN_GRANT)
+    unannounced = presence is not None and key is not None
+
+    async def announce_with(payload: bytes) -> None:
+        assert presence is not None and key is not None
+        async with _announcing.setdefault(id(presence), asyncio.Lock()):
+            done = presence.announce(key, grant)
+            await upstream.send(payload)
+            if not await asyncio.to_thread(done.wait, ANNOUNCE_TIMEOUT):
+                presence.withdraw(done)
 
     async def to_browser() -> None:
         async for message in upstream:
@@ -73,18 +90,6 @@ async def forward_socket(
                 await websocket.send_bytes(message)
             else:
                 await websocket.send_text(message)
-
-    grant = websocket.scope.get("state", {}).get("grant", OPEN_GRANT)
-    unannounced = presence is not None and key is not None
-
-    async def announce_with(payload: bytes) -> None:
-        assert presence is not None and key is not None
-        lock = _announcing.setdefault(port, asyncio.Lock())
-        async with lock:
-            done = presence.announce(key, grant)
-            await upstream.send(payload)
-            if not await asyncio.to_thread(done.wait, ANNOUNCE_TIMEOUT):
-                presence.withdraw(done)
 
     async def to_viser() -> None:
         nonlocal unannounced
