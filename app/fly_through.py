@@ -1,6 +1,6 @@
 """Fly-through renders in the workbench: a camera path built from views in the browser, rendered on the server.
 
-The path lives in the session (``Session.set_camera_path``): every edit - a keyframe added from a
+The path lives in the session (``Session.change_camera_path``): every edit - a keyframe added from a
 browser's current view, moved or deleted, from the 3D view's "Fly-through" panel or from REST - is
 saved at once, so every browser and ``slam6d render SESSION`` see the same path, and the journal
 records who changed it. With no keyframes the default path (following the scan trajectory) is used.
@@ -18,6 +18,7 @@ import itertools
 import math
 import re
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -54,11 +55,27 @@ def keyframes_of(session: Session) -> list[Keyframe]:
     return [] if path is None else list(path.keyframes)
 
 
-def save_keyframes(workbench: Workbench, session_id: str, keyframes: list[Keyframe], author: str) -> None:
-    """Store the keyframes in the session and tell the 3D views of that session to redraw them."""
+def change_keyframes(
+    workbench: Workbench, session_id: str, change: Callable[[list[Keyframe]], object], author: str
+) -> list[Keyframe]:
+    """Apply ``change`` (which edits the list in place) to the keyframes as stored when it is written,
+    and tell the 3D views of that session to redraw them; returns the new keyframes.
+
+    Reading, changing and storing are one journal transaction: a keyframe someone else added a moment
+    ago is kept, never overwritten by a list read before it.
+    """
     session = workbench.state(session_id).session
-    session.set_camera_path(CameraPath(list(keyframes)).to_dict()["keyframes"], author)
+
+    def apply(stored: list[dict[str, Any]]) -> list[dict[str, Any]]:
+        keyframes = (
+            [] if not stored else list(camera_path_from_dict({"keyframes": stored}, source=session.folder).keyframes)
+        )
+        change(keyframes)
+        return CameraPath(list(keyframes)).to_dict()["keyframes"] if keyframes else []
+
+    stored = session.change_camera_path(apply, author)
     workbench.camera_path_changed(session_id)
+    return [] if not stored else list(camera_path_from_dict({"keyframes": stored}, source=session.folder).keyframes)
 
 
 def path_for_render(session: Session, scan_poses: list[Matrix]) -> CameraPath:

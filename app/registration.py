@@ -51,26 +51,38 @@ def registration_job(workbench: Workbench, session_id: str, author: str, paramet
 
     def work(progress: Progress, cancel: Cancel) -> dict[str, Any]:
         sequence = working_copy(state.sequence(lambda d, t: progress("reading scans", d, t)))
+        base = state.session.revision  # the revision the run starts from (the scans follow the head)
         runner = pipeline.Pipeline(sequence, config)
         recorder = TraceRecorder()
         report = recorder.attach(runner).run(progress, cancel)
         summary = to_jsonable(report)
-        return store_run(workbench, session_id, author, runner, recorder, {"config": to_jsonable(config)}) | {
+        return store_run(workbench, session_id, author, runner, recorder, {"config": to_jsonable(config)}, base) | {
             "report": summary
         }
 
     return work
 
 
-def store_run(workbench: Workbench, session_id: str, author: str, runner: Any, recorder: Any, parameters: dict) -> dict:
-    """Commit a finished run with its trace file named in the journal, then its loops for review."""
+def store_run(
+    workbench: Workbench,
+    session_id: str,
+    author: str,
+    runner: Any,
+    recorder: Any,
+    parameters: dict,
+    base: int | None = None,
+) -> dict:
+    """Commit a finished run with its trace file named in the journal, then its loops for review.
+
+    ``base``: the revision the run started from; a scan someone moved meanwhile refuses the run (409).
+    """
 
     session = workbench.state(session_id).session
     meta = {"author": author, "final_poses": to_jsonable(runner.poses)}
     name = recorder.save(session, runner.odometry, meta)
     graph = {"loops": accepted_loops(runner.report), "removed": []}
     revision = workbench.commit(
-        session_id, runner.poses, author, "register", {**parameters, "trace": name}, graph=graph
+        session_id, runner.poses, author, "register", {**parameters, "trace": name}, graph=graph, base=base
     )
     if runner.report.loops:
         session.journal.append(author, "loop_hypotheses", hypotheses_entry(runner.report.loops))

@@ -10,19 +10,28 @@ any working directory.
 from __future__ import annotations
 
 import inspect
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Iterable
 from contextlib import asynccontextmanager
 from importlib.resources import files
 from pathlib import Path
+from typing import Any
 
-from fastapi import FastAPI
+from fastapi import Depends, FastAPI
 from fastapi.responses import FileResponse, RedirectResponse
 from fastapi.staticfiles import StaticFiles
 
+from app.data_root import DataRoot
+from app.errors import UnknownSessionError
+from app.guard import GuardPolicy, RequestGuard, authorize, is_loopback, server_names, session_from_path
+from app.revisions import RevisionHeaders, add_revision_errors, check_revision
 from app.routes import API_ROUTERS
 from app.routes.dependencies import REQUIRE_SESSION
 from app.routes.errors import install_error_handlers
+from app.routes.sharing import build_sharing_router
+from app.tokens import TokenStore
 from app.workbench import Workbench
+from slam6d.errors import Slam6dError
+from slam6d.journal import Journal
 
 
 def static_dir() -> Path:
@@ -33,9 +42,24 @@ def static_dir() -> Path:
     return folder
 
 
-def create_app(sessions_dir: Path | str, viewers: bool = True, max_upload_mb: int = 512) -> FastAPI:
-    """``viewers=False`` leaves out the 3D views (REST-only tests need no viser servers)."""
-    workbench = Workbench(sessions_dir, max_upload_bytes=max_upload_mb * 1024 * 1024)
+def create_app(
+    sessions_dir: Path | str,
+    viewers: bool = True,
+    max_upload_mb: int = 512,
+    bind_host: str = "127.0.0.1",
+    require_token: bool | None = None,
+    data_root: Path | None = None,
+    names: Iterable[str] = (),
+) -> FastAPI:
+    """``viewers=False`` leaves out the 3D views (REST-only tests need no viser servers).
+
+    ``bind_host`` is the address the server listens on: off loopback, tokens are required (unless
+    ``require_token`` says otherwise) and folder sessions only come from ``data_root``.
+    """
+    shared = not is_loopback(bind_host)
+    workbench = Workbench(
+        sessions_dir, max_upload_bytes=max_upload_mb * 1024 * 1024, data_root=DataRoot(data_root, shared)
+    )
     pages = static_dir()
 
     @asynccontextmanager
@@ -55,8 +79,13 @@ def create_app(sessions_dir: Path | str, viewers: bool = True, max_upload_mb: in
     app.state.workbench = workbench
     app.state.on_shutdown = []
     install_error_handlers(app)
+    # before any route is added: every route gets the guard's dependencies
+    app.router.dependencies.extend(
+        add_guards(app, workbench, bind_host, shared if require_token is None else require_token, names)
+    )
     for router in API_ROUTERS:
         app.include_router(router)
+    app.include_router(build_sharing_router(app.state.tokens))  # who am I, share links
 
     if viewers:
         import httpx
@@ -88,3 +117,31 @@ def create_app(sessions_dir: Path | str, viewers: bool = True, max_upload_mb: in
         return RedirectResponse("/")
 
     return app
+
+
+def add_guards(
+    app: FastAPI, workbench: Workbench, bind_host: str, require_token: bool, names: Iterable[str]
+) -> list[Any]:
+    """The request guard (host, origin, token) in front of the revision headers (ETag); returns the
+    dependencies every route needs (role and body type, then If-Match)."""
+    tokens = TokenStore(workbench.sessions_dir)
+    app.state.tokens = tokens
+
+    def session_of(path_params: dict[str, Any]) -> str | None:
+        job_id = path_params.get("job_id")
+        if job_id is not None:  # a job acts on its session; an unknown job on none (answered 404 later)
+            job = workbench.jobs.get(str(job_id))
+            return None if job is None else job.session_id
+        return session_from_path(path_params)
+
+    def journal_of(session_id: str) -> Journal | None:
+        try:
+            return workbench.state(session_id).session.journal
+        except (UnknownSessionError, Slam6dError):
+            return None
+
+    policy = GuardPolicy(tokens, require_token, server_names(bind_host, names), session_of)
+    add_revision_errors(app)
+    app.add_middleware(RevisionHeaders, journal_of=journal_of)
+    app.add_middleware(RequestGuard, policy=policy)  # outermost: nothing is answered before it
+    return [Depends(authorize(policy)), Depends(check_revision(journal_of))]

@@ -19,10 +19,12 @@ from typing import Any
 
 import numpy as np
 
+from app.data_root import DataRoot
 from app.errors import EditError, UnknownSessionError, UploadError
 from app.jobs import JobManager
 from slam6d.errors import SessionError, Slam6dError
 from slam6d.geometry import Matrix
+from slam6d.journal import Change, Revision, StaleRevisionError
 from slam6d.scan import ScanSequence
 from slam6d.session import SESSION_FILE, Session
 
@@ -62,8 +64,14 @@ def slugify(name: str) -> str:
 
 
 class Workbench:
-    def __init__(self, sessions_dir: Path | str, max_upload_bytes: int = 512 * 1024 * 1024) -> None:
+    def __init__(
+        self,
+        sessions_dir: Path | str,
+        max_upload_bytes: int = 512 * 1024 * 1024,
+        data_root: DataRoot | None = None,
+    ) -> None:
         self.sessions_dir = Path(sessions_dir)
+        self.data_root = data_root or DataRoot(None, shared=False)
         self.sessions_dir.mkdir(parents=True, exist_ok=True)
         self.max_upload_bytes = max_upload_bytes
         self.jobs = JobManager()
@@ -132,7 +140,7 @@ class Workbench:
     def create_from_folder(
         self, name: str, source: Path, format_name: str | None = None, frame: str | None = None
     ) -> Session:
-        source = Path(source).expanduser().resolve()
+        source = self.data_root.check(source)  # before anything looks at the path
         folder = self._new_folder(name)
         try:
             session = Session.create(folder, name, source, format_name, frame)
@@ -180,30 +188,53 @@ class Workbench:
         kind: str,
         parameters: dict[str, Any] | None = None,
         graph: dict[str, Any] | None = None,
+        base: int | None = None,
     ) -> int:
-        rev = self.state(session_id).session.journal.commit(poses, author, kind, parameters, graph)
+        """Poses for every scan as a new revision; with ``base`` (the revision they were computed
+        from) only the scans that differ from it are laid onto the head, or EditConflictError (409)
+        names the edit that moved one of them meanwhile."""
+        rev = self.state(session_id).session.journal.commit(poses, author, kind, parameters, graph, base)
         self._changed(session_id)
         return rev
 
-    def undo(self, session_id: str, author: str) -> int:
-        """Step back one revision; EditError (409) when there is nothing to undo."""
+    def apply(
+        self, session_id: str, change: Change, author: str, kind: str, parameters: dict[str, Any] | None = None
+    ) -> int:
+        """One edit (some scans' poses, a change of the graph) applied to the head as a new revision."""
+        rev = self.state(session_id).session.journal.apply(change, author, kind, parameters)
+        self._changed(session_id)
+        return rev
+
+    def undo(self, session_id: str, author: str, revision: int | None = None) -> int:
+        """Step back from ``revision`` (default: the head); EditError (409) when there is nothing to undo.
+
+        Naming the revision makes a retry safe: undoing it again answers where the first undo went.
+        """
         journal = self.state(session_id).session.journal
         try:
-            rev = journal.undo(author)
+            rev = journal.undo(author, revision)
+        except StaleRevisionError:
+            raise
         except SessionError as exc:
             raise EditError(str(exc)) from None
         self._changed(session_id)
         return rev
 
-    def redo(self, session_id: str, author: str) -> int:
-        """Step forward one revision; EditError (409) when there is nothing to redo."""
+    def redo(self, session_id: str, author: str, revision: int | None = None) -> int:
+        """Step forward from ``revision`` (default: the head); EditError (409) when there is nothing to redo."""
         journal = self.state(session_id).session.journal
         try:
-            rev = journal.redo(author)
+            rev = journal.redo(author, revision)
+        except StaleRevisionError:
+            raise
         except SessionError as exc:
             raise EditError(str(exc)) from None
         self._changed(session_id)
         return rev
+
+    def head(self, session_id: str) -> Revision:
+        """The current revision (number, poses, graph) read at once, for an edit to name as its base."""
+        return self.state(session_id).session.get_revision()
 
     def current_poses(self, session_id: str) -> list[Matrix]:
         return [np.asarray(p) for p in self.state(session_id).session.poses()]

@@ -445,7 +445,8 @@ def relax(
         typer.echo(f"wrote {out} (canonical frame)")
     if commit:
         parameters = {"method": method, "fixed": held, "rounds": result.iterations}
-        number = session.journal.commit(result.poses, author, f"relax_{method}", parameters, revision.graph)
+        # onto the head as it is now: a workbench editing this session meanwhile keeps its other edits
+        number = session.journal.commit(result.poses, author, f"relax_{method}", parameters, base=revision.number)
         typer.echo(f"stored as revision {number}")
 
 

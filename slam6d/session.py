@@ -243,13 +243,22 @@ class Session:
 
     def camera_path(self) -> list[dict[str, Any]]:
         """Render keyframes, as last saved: dicts as in a camera-path file (position, orientation_wxyz, fov_deg)."""
-        for entry in reversed(self.journal.entries()):
-            if entry.kind == "camera_path":
-                return list(entry.parameters.get("keyframes", []))
-        return []
+        latest = self.journal.latest("camera_path")
+        return [] if latest is None else list(latest.parameters.get("keyframes", []))
 
     def set_camera_path(self, keyframes: list[dict[str, Any]], author: str) -> None:
-        self.journal.append(author, "camera_path", {"keyframes": keyframes})
+        """Replace all keyframes."""
+        self.change_camera_path(lambda _old: keyframes, author)
+
+    def change_camera_path(
+        self, change: Callable[[list[dict[str, Any]]], list[dict[str, Any]]], author: str
+    ) -> list[dict[str, Any]]:
+        """Apply ``change`` to the keyframes as stored at the moment of writing (two keyframes added at
+        once are both kept); returns the new keyframes. An exception from ``change`` stores nothing."""
+        entry = self.journal.update_document(
+            author, "camera_path", lambda doc: {"keyframes": change(list((doc or {}).get("keyframes", [])))}
+        )
+        return list(entry.parameters["keyframes"])
 
 
 # ------------------------------------------------------------------ session.toml

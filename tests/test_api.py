@@ -26,7 +26,7 @@ def sessions_dir(tmp_path):
 
 @pytest.fixture
 def client(sessions_dir):
-    with TestClient(create_app(sessions_dir, viewers=False, max_upload_mb=1)) as c:
+    with TestClient(create_app(sessions_dir, viewers=False, max_upload_mb=1), base_url="http://127.0.0.1") as c:
         yield c
 
 
@@ -66,10 +66,10 @@ def test_undo_redo_over_rest_changes_served_poses(client, sessions_dir):
     poses[1][2, 3] += 0.5
     assert app_state.commit("corridor", poses, "ana", "manual_move", {"scan": 1}) == 1
     assert kitti(client.get("/api/sessions/corridor/poses").text)[1][2, 3] == pytest.approx(0.5, abs=1e-6)
-    assert client.post("/api/sessions/corridor/undo", headers={"X-Author": "bob"}).json() == {"revision": 0}
+    assert client.post("/api/sessions/corridor/undo", json={}, headers={"X-Author": "bob"}).json() == {"revision": 0}
     assert kitti(client.get("/api/sessions/corridor/poses").text)[1][2, 3] == pytest.approx(0.0, abs=1e-6)
     assert kitti(client.get("/api/sessions/corridor/poses?rev=1").text)[1][2, 3] == pytest.approx(0.5, abs=1e-6)
-    assert client.post("/api/sessions/corridor/redo").json() == {"revision": 1}
+    assert client.post("/api/sessions/corridor/redo", json={}).json() == {"revision": 1}
     journal = client.get("/api/sessions/corridor/journal").json()
     assert [(e["kind"], e["author"]) for e in journal] == [
         ("import", "system"),
@@ -77,7 +77,7 @@ def test_undo_redo_over_rest_changes_served_poses(client, sessions_dir):
         ("undo", "bob"),
         ("redo", "anonymous"),
     ]
-    response = client.post("/api/sessions/corridor/redo")
+    response = client.post("/api/sessions/corridor/redo", json={})
     assert response.status_code == 409 and "nothing to redo" in response.json()["detail"]
 
 

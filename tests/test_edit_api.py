@@ -30,7 +30,7 @@ def client(tmp_path, loop_scans):
     root = tmp_path / "sessions"
     corridor_session(root, scans=4, points=3000, odometry_noise=0.1, engine={"voxel_size": 0.1})
     Session.create(root / "loop", "Loop", loop_scans[0])
-    with TestClient(create_app(root, viewers=False)) as c:
+    with TestClient(create_app(root, viewers=False), base_url="http://127.0.0.1") as c:
         yield c
 
 
@@ -50,31 +50,31 @@ def revision(client, base: str) -> int:  # type: ignore[no-untyped-def]
 
 
 def test_loop_hypotheses_are_reviewed_accepted_rejected_and_undone(client):
-    wait(client, client.post(f"{LOOP}/loops/detect", headers={"X-Author": "ana"}))
+    wait(client, client.post(f"{LOOP}/loops/detect", json={}, headers={"X-Author": "ana"}))
     listed = client.get(f"{LOOP}/loops").json()
     loop = next(h for h in listed if (h["i"], h["j"]) == (0, 7))
     assert loop["status"] == "pending" and loop["verified"] and loop["overlap"] > 0.2 and loop["fitness"] > 0.3
     assert loop["distance"] < 2.0 and loop["transform"] is not None
     k = loop["k"]
 
-    accepted = client.post(f"{LOOP}/loops/{k}/accept", headers={"X-Author": "ana"})
+    accepted = client.post(f"{LOOP}/loops/{k}/accept", json={}, headers={"X-Author": "ana"})
     assert accepted.status_code == 200, accepted.text
     assert accepted.json()["revision"] == 1 and revision(client, LOOP) == 1
     assert client.get(f"{LOOP}/loops").json()[k]["status"] == "accepted"
     edges = client.get(f"{LOOP}/edges").json()
     assert any(e["kind"] == "loop" and (e["i"], e["j"]) == (0, 7) for e in edges)
-    assert client.post(f"{LOOP}/loops/{k}/accept").status_code == 409  # already accepted
+    assert client.post(f"{LOOP}/loops/{k}/accept", json={}).status_code == 409  # already accepted
 
-    rejected = client.post(f"{LOOP}/loops/{k}/reject", headers={"X-Author": "bob"})
+    rejected = client.post(f"{LOOP}/loops/{k}/reject", json={}, headers={"X-Author": "bob"})
     assert rejected.json()["revision"] == 2
     assert client.get(f"{LOOP}/loops").json()[k]["status"] == "rejected"
     assert not any(e["kind"] == "loop" for e in client.get(f"{LOOP}/edges").json())
 
-    assert client.post(f"{LOOP}/undo").json() == {"revision": 1}
+    assert client.post(f"{LOOP}/undo", json={}).json() == {"revision": 1}
     assert client.get(f"{LOOP}/loops").json()[k]["status"] == "accepted"
     kinds = [(e["kind"], e["author"]) for e in client.get(f"{LOOP}/journal").json()]
     assert ("accept_loop", "ana") in kinds and ("reject_loop", "bob") in kinds
-    assert client.post(f"{LOOP}/loops/99/accept").status_code == 404
+    assert client.post(f"{LOOP}/loops/99/accept", json={}).status_code == 404
 
 
 def drift(poses: list[np.ndarray]) -> list[np.ndarray]:
@@ -96,7 +96,7 @@ def test_a_manual_loop_edge_then_loop_closing_and_lum_remove_drift(client):
 
     drifted = end_error()
     assert client.post(f"{CORRIDOR}/edges", json={"i": 0, "j": 3}).status_code == 201
-    job = wait(client, client.post(f"{CORRIDOR}/close-loops", headers={"X-Author": "ana"}))
+    job = wait(client, client.post(f"{CORRIDOR}/close-loops", json={}, headers={"X-Author": "ana"}))
     closed = end_error()
     assert drifted > 0.3 and closed < 0.05, (drifted, closed)
     assert job.result["revision"] == 3 and len(job.result["residual_after"]["edges"]) == 4
@@ -127,9 +127,9 @@ def test_adding_an_edge_is_an_icp_refined_revision_and_undo_removes_it(client):
     metres, radians = pose_difference(np.array(body["edge"]["transform"]), expected)
     assert metres < 0.05 and radians < 0.01  # ICP found the true relative pose despite 10 cm odometry noise
     assert [(e["i"], e["j"], e["kind"]) for e in client.get(f"{CORRIDOR}/edges").json()][-1] == (0, 2, "manual")
-    assert client.post(f"{CORRIDOR}/undo").json() == {"revision": 0}
+    assert client.post(f"{CORRIDOR}/undo", json={}).json() == {"revision": 0}
     assert all(e["kind"] == "sequential" for e in client.get(f"{CORRIDOR}/edges").json())
-    assert client.post(f"{CORRIDOR}/redo").json() == {"revision": 1}
+    assert client.post(f"{CORRIDOR}/redo", json={}).json() == {"revision": 1}
     assert client.post(f"{CORRIDOR}/edges", json={"i": 1, "j": 1}).status_code == 422
     assert client.post(f"{CORRIDOR}/edges", json={"i": 1, "j": 9}).status_code == 404
 
@@ -150,7 +150,7 @@ def test_deleting_an_edge_disconnects_the_graph_and_relaxation_says_why(client):
     assert client.get("/api/jobs/job-1").status_code == 404  # nothing was started
     assert client.delete(f"{CORRIDOR}/edges/42").status_code == 404
 
-    client.post(f"{CORRIDOR}/undo")
+    client.post(f"{CORRIDOR}/undo", json={})
     job = wait(client, client.post(f"{CORRIDOR}/relax", json={"method": "graph", "fixed": [0]}))
     truth = true_poses(4)
     poses = poses_of(client, "corridor")

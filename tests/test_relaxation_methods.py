@@ -24,7 +24,7 @@ def edited_session(tmp_path):
     """A corridor session whose graph was edited in the workbench (an ICP-refined edge 0-3 added)."""
     root = tmp_path / "sessions"
     corridor_session(root, scans=4, points=3000, odometry_noise=0.1, engine={"voxel_size": 0.1})
-    with TestClient(create_app(root, viewers=False)) as client:
+    with TestClient(create_app(root, viewers=False), base_url="http://127.0.0.1") as client:
         assert client.post(f"{CORRIDOR}/edges", json={"i": 0, "j": 3}).status_code == 201
     return root
 
@@ -34,7 +34,7 @@ def test_the_workbench_and_the_cli_relax_a_session_to_the_same_poses(edited_sess
     copy = tmp_path / "copy"
     shutil.copytree(edited_session / "corridor", copy)
 
-    with TestClient(create_app(edited_session, viewers=False)) as client:
+    with TestClient(create_app(edited_session, viewers=False), base_url="http://127.0.0.1") as client:
         response = client.post(f"{CORRIDOR}/relax", json={"method": method, "fixed": [0]})
         assert response.status_code == 202, response.text
         job = client.app.state.workbench.jobs.wait(response.json()["id"], timeout=120)

@@ -30,7 +30,7 @@ def sessions_dir(tmp_path):
 
 @pytest.fixture
 def client(sessions_dir):
-    with TestClient(create_app(sessions_dir, viewers=False)) as c:
+    with TestClient(create_app(sessions_dir, viewers=False), base_url="http://127.0.0.1") as c:
         yield c
 
 

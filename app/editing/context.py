@@ -9,19 +9,20 @@ not in the GUI, so a button and a REST call are held to the same checks.
 from __future__ import annotations
 
 import threading
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 from app.workbench import EditError, Workbench
 from slam6d.engine_settings import pipeline_config
 from slam6d.geometry import Matrix
 from slam6d.graph_relaxation import graph_information
+from slam6d.journal import Change
 from slam6d.pipeline import PipelineConfig
 from slam6d.relax import ScanModels
 from slam6d.relaxation_methods import reduced_models
 from slam6d.residuals import ResidualSummary, residual_jump, residual_summary
 from slam6d.session import Session
-from slam6d.session_graph import graph_edge_list, graph_edges
+from slam6d.session_graph import GraphDocument, graph_edge_list, graph_edges
 
 
 class EditContext:
@@ -87,16 +88,21 @@ class EditContext:
         author: str,
         kind: str,
         parameters: dict[str, Any],
-        graph: dict[str, Any] | None = None,
+        base: int,
     ) -> dict[str, Any]:
-        """Commit new poses with the residual summary before and after; a jump becomes ``warning``."""
+        """Commit poses computed from revision ``base`` with the residual summary before and after; a
+        jump becomes ``warning``.
+
+        Only the scans that differ from ``base`` are written, onto the head as it is then: an edit of
+        other scans made meanwhile is kept; an edit of the same scans refuses this one (409 naming it).
+        """
         before = self.residuals(session_id)
-        after = self.residuals(session_id, poses, graph)
+        after = self.residuals(session_id, poses)
         warning = residual_jump(before, after)
-        params = {**parameters, "residual_before": before.rms, "residual_after": after.rms}
+        params = {**parameters, "base": base, "residual_before": before.rms, "residual_after": after.rms}
         if warning:
             params["warning"] = warning
-        revision = self.workbench.commit(session_id, list(poses), author, kind, params, graph=graph)
+        revision = self.workbench.commit(session_id, list(poses), author, kind, params, base=base)
         return {
             "revision": revision,
             "residual_before": before.as_dict(),
@@ -105,7 +111,13 @@ class EditContext:
         }
 
     def commit_graph(
-        self, session_id: str, graph: dict[str, Any], author: str, kind: str, parameters: dict[str, Any]
+        self,
+        session_id: str,
+        change: Callable[[GraphDocument], GraphDocument],
+        author: str,
+        kind: str,
+        parameters: dict[str, Any],
     ) -> int:
-        """A new revision that changes only the graph (the poses stay)."""
-        return self.workbench.commit(session_id, self.poses(session_id), author, kind, parameters, graph=graph)
+        """A new revision that changes only the graph: ``change`` runs on the head's graph as it is when
+        written, so an edge someone else added a moment ago stays."""
+        return self.workbench.apply(session_id, Change(graph=change), author, kind, parameters)

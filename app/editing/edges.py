@@ -12,7 +12,7 @@ from slam6d.errors import RegistrationError
 from slam6d.geometry import Matrix, invert
 from slam6d.icp import icp
 from slam6d.loops import LoopHypothesis, verify
-from slam6d.session_graph import edge_key, with_loop, without_loop
+from slam6d.session_graph import GraphDocument, edge_key, with_loop, without_loop
 from slam6d.simultaneous import UnionIndex
 
 
@@ -46,9 +46,10 @@ class GraphEdits:
             "rms": float(verdict.rms),
             "transform": np.asarray(verdict.transform).tolist(),
         }
-        graph = with_loop(context.session(session_id).graph(), edge)
         parameters = {"i": i, "j": j, "fitness": edge["fitness"], "rms": edge["rms"], "forced": bool(force)}
-        revision = context.commit_graph(session_id, graph, author, "add_edge", parameters)
+        revision = context.commit_graph(
+            session_id, lambda graph: with_loop(graph, edge), author, "add_edge", parameters
+        )
         return {"revision": revision, "edge": edge, "warning": None if verdict.accepted else verdict.reason}
 
     def delete(self, session_id: str, k: int, author: str) -> dict[str, Any]:
@@ -59,12 +60,14 @@ class GraphEdits:
         if not 0 <= k < len(listed):
             raise EditError(f"no edge {k}; there are {len(listed)}", 404)
         edge = listed[k]
-        if edge["kind"] == "sequential":
-            graph = {**graph, "removed": [*graph.get("removed", []), edge_key(edge["i"], edge["j"])]}
-        else:
-            graph = without_loop(graph, edge["i"], edge["j"])
+
+        def remove(head: GraphDocument) -> GraphDocument:  # the edge by its scans: k may have shifted meanwhile
+            if edge["kind"] == "sequential":
+                return {**head, "removed": [*head.get("removed", []), edge_key(edge["i"], edge["j"])]}
+            return without_loop(head, edge["i"], edge["j"])
+
         params = {"edge": k, "i": edge["i"], "j": edge["j"], "kind": edge["kind"]}
-        revision = context.commit_graph(session_id, graph, author, "delete_edge", params)
+        revision = context.commit_graph(session_id, remove, author, "delete_edge", params)
         return {"revision": revision, "deleted": {key: edge[key] for key in ("i", "j", "kind")}}
 
     def move_scan(self, session_id: str, k: int, pose: Matrix, author: str, refine: bool = False) -> dict[str, Any]:
@@ -74,7 +77,8 @@ class GraphEdits:
         pose = np.asarray(pose, dtype=np.float64)
         if pose.shape != (4, 4) or not np.isfinite(pose).all():
             raise EditError("pose must be a finite 4x4 matrix", 422)
-        poses = context.poses(session_id)
+        head = context.workbench.head(session_id)
+        poses = list(head.poses)
         params: dict[str, Any] = {"scan": k, "pose": pose, "refine": refine}
         if refine:
             neighbours = sorted(
@@ -90,4 +94,5 @@ class GraphEdits:
             pose = result.transform
             params.update(neighbours=neighbours, fitness=result.fitness, rms=result.rms)
         poses[k] = pose
-        return context.commit_checked(session_id, poses, author, "icp_move" if refine else "manual_move", params)
+        kind = "icp_move" if refine else "manual_move"
+        return context.commit_checked(session_id, poses, author, kind, params, base=head.number)

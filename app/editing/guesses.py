@@ -100,7 +100,8 @@ class OctreeGuesses:
             result = icp(models.index(model), models.points[data], np.asarray(cand["transform"]), models.config)
         except RegistrationError as exc:
             raise EditError(f"ICP from candidate {rank} failed: {exc}", 422) from None
-        poses = self.context.poses(session_id)
+        head = self.context.workbench.head(session_id)
+        poses = list(head.poses)
         poses[data] = poses[model] @ result.transform
         params = {
             "model": model,
@@ -111,5 +112,5 @@ class OctreeGuesses:
             "fitness": result.fitness,
             "rms": result.rms,
         }
-        outcome = self.context.commit_checked(session_id, poses, author, "icp_from_candidate", params)
+        outcome = self.context.commit_checked(session_id, poses, author, "icp_from_candidate", params, base=head.number)
         return {**outcome, "fitness": result.fitness, "rms": result.rms}

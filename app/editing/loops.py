@@ -16,7 +16,7 @@ from app.editing.context import EditContext
 from app.jobs import Cancel, Progress, Work
 from app.workbench import EditError
 from slam6d.loops import LoopHypothesis, detect_loops
-from slam6d.session_graph import edge_key, with_loop, without_loop
+from slam6d.session_graph import GraphDocument, edge_key, with_loop, without_loop
 
 
 def hypothesis_dict(h: LoopHypothesis) -> dict[str, Any]:
@@ -100,14 +100,15 @@ class LoopReview:
         wanted = "accepted" if accept else "rejected"
         if hyp["status"] == wanted:
             raise EditError(f"loop {hyp['i']}-{hyp['j']} is already {wanted}")
-        graph = self.context.session(session_id).graph()
-        if accept:
-            edge = {name: hyp[name] for name in ("i", "j", "fitness", "rms", "transform")}
-            graph = with_loop(graph, {**edge, "kind": "loop"})
-        else:
-            graph = without_loop(graph, hyp["i"], hyp["j"])
-            graph["rejected"] = [*graph.get("rejected", []), edge_key(hyp["i"], hyp["j"])]
+        edge = {name: hyp[name] for name in ("i", "j", "fitness", "rms", "transform")}
+
+        def decide(graph: GraphDocument) -> GraphDocument:  # on the head's graph when written
+            if accept:
+                return with_loop(graph, {**edge, "kind": "loop"})
+            decided = without_loop(graph, hyp["i"], hyp["j"])
+            return {**decided, "rejected": [*graph.get("rejected", []), edge_key(hyp["i"], hyp["j"])]}
+
         kind = "accept_loop" if accept else "reject_loop"
         parameters = {"hypothesis": k, "i": hyp["i"], "j": hyp["j"]}
-        revision = self.context.commit_graph(session_id, graph, author, kind, parameters)
+        revision = self.context.commit_graph(session_id, decide, author, kind, parameters)
         return {"revision": revision, "status": wanted, "i": hyp["i"], "j": hyp["j"]}

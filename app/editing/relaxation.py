@@ -39,7 +39,8 @@ class Relaxation:
         loops.sort(key=lambda e: (e["j"], e["i"]))
 
         def work(progress: Progress, cancel: Cancel) -> dict[str, Any]:
-            poses = context.poses(session_id)
+            start = context.workbench.head(session_id)  # the revision this job works from
+            poses = list(start.poses)
             before = [p.copy() for p in poses]
             for n, edge in enumerate(loops):
                 if cancel():
@@ -48,7 +49,7 @@ class Relaxation:
                 poses = diffuse_loop_correction(poses, hyp.i, hyp.j, loop_correction(poses, hyp))
                 progress("closing loops", n + 1, len(loops))
             params = {"loops": [[e["i"], e["j"]] for e in loops], "displacement": displacements(before, poses)}
-            return context.commit_checked(session_id, poses, author, "close_loops", params)
+            return context.commit_checked(session_id, poses, author, "close_loops", params, base=start.number)
 
         return work
 
@@ -72,8 +73,8 @@ class Relaxation:
 
         def work(progress: Progress, cancel: Cancel) -> dict[str, Any]:
             models = context.models(session_id)
-            poses = context.poses(session_id)
-            revision = context.session(session_id).get_revision()
+            revision = context.workbench.head(session_id)  # the revision this job works from
+            poses = list(revision.poses)
             result = relax_poses(
                 method,
                 models,
@@ -85,13 +86,15 @@ class Relaxation:
                 cancel=cancel,
                 edge_progress=lambda done, total: progress(f"{method}: matching edges", done, total),
             )
+            # held scans are no part of the change: someone may move them meanwhile without a conflict
+            relaxed = [poses[k] if k in fixed else pose for k, pose in enumerate(result.poses)]
             params = {
                 "method": method,
                 "fixed": list(fixed),
                 "rounds": result.iterations,
                 "residual_plane": [result.residual_before, result.residual_after],
-                "displacement": displacements(poses, result.poses),
+                "displacement": displacements(poses, relaxed),
             }
-            return context.commit_checked(session_id, result.poses, author, f"relax_{method}", params)
+            return context.commit_checked(session_id, relaxed, author, f"relax_{method}", params, base=revision.number)
 
         return work

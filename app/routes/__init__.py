@@ -12,6 +12,8 @@ module              resource
 ``guesses``         octree guesses and ICP from a candidate
 ``traces``          stored traces of registration runs
 ``camera_path``     fly-through keyframes, render jobs, rendered videos
+``comments``        comments anchored to a scan point, an edge or a loop
+``sharing``         who am I, a session's share links (owners)
 ``views``           each session's 3D view (viser) behind the same port
 ==================  =========================================================
 
@@ -23,7 +25,7 @@ from __future__ import annotations
 
 from fastapi import APIRouter
 
-from app.routes import camera_path, edges, exports, guesses, jobs, loops, relaxation, sessions, traces
+from app.routes import camera_path, comments, edges, exports, guesses, jobs, loops, relaxation, sessions, traces
 
 API_ROUTERS: tuple[APIRouter, ...] = (
     sessions.router,
@@ -35,4 +37,5 @@ API_ROUTERS: tuple[APIRouter, ...] = (
     guesses.router,
     traces.router,
     camera_path.router,
+    comments.router,
 )

@@ -17,11 +17,10 @@ from pydantic import BaseModel, Field
 from app.errors import EditError, WorkbenchError
 from app.fly_through import (
     RenderRequest,
+    change_keyframes,
     is_render_name,
-    keyframes_of,
     list_renders,
     renders_folder,
-    save_keyframes,
     saved_path,
     start_render,
 )
@@ -68,17 +67,22 @@ def _path_response(session: Session) -> dict[str, Any]:
 def _edit(
     workbench: WorkbenchDep, session_id: str, change: Callable[[list[Keyframe]], object], author: str
 ) -> dict[str, Any]:
-    """Apply ``change`` to the saved keyframes and save them: 404 for a keyframe index outside the path,
-    422 for a keyframe the camera path refuses."""
+    """Apply ``change`` to the keyframes as stored when it is written (nobody else's edit is lost):
+    404 for a keyframe index outside the path, 422 for a keyframe the camera path refuses."""
     session = workbench.state(session_id).session
-    keyframes = keyframes_of(session)
-    try:
+    count = 0
+
+    def checked(keyframes: list[Keyframe]) -> None:
+        nonlocal count
+        count = len(keyframes)
         change(keyframes)
+
+    try:
+        change_keyframes(workbench, session_id, checked, author)
     except IndexError:
-        raise EditError(f"no such keyframe; the path has {len(keyframes)}", 404) from None
+        raise EditError(f"no such keyframe; the path has {count}", 404) from None
     except ValueError as exc:
         raise WorkbenchError(str(exc)) from None
-    save_keyframes(workbench, session_id, keyframes, author)
     return _path_response(session)
 
 

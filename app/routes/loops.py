@@ -11,7 +11,9 @@ from typing import Any
 
 from fastapi import APIRouter
 
+from app.guard import requires
 from app.routes.dependencies import REQUIRE_SESSION, Author, EditorDep, WorkbenchDep
+from app.tokens import Role
 
 router = APIRouter(prefix="/api/sessions/{session_id}", tags=["loops"], dependencies=[REQUIRE_SESSION])
 
@@ -31,13 +33,13 @@ def detect_loops(
     return workbench.jobs.submit(session_id, "detect-loops", work, author, {}).as_dict()
 
 
-@router.post("/loops/{k}/accept")
+@router.post("/loops/{k}/accept", openapi_extra=requires(Role.reviewer))
 def accept_loop(session_id: str, k: int, editor: EditorDep, author: Author = "anonymous") -> dict[str, Any]:
     """Hypothesis ``k``'s ICP-verified edge joins the graph (a new revision)."""
     return editor.loops.decide(session_id, k, True, author)
 
 
-@router.post("/loops/{k}/reject")
+@router.post("/loops/{k}/reject", openapi_extra=requires(Role.reviewer))
 def reject_loop(session_id: str, k: int, editor: EditorDep, author: Author = "anonymous") -> dict[str, Any]:
     """Hypothesis ``k`` is turned down (a new revision recording it)."""
     return editor.loops.decide(session_id, k, False, author)

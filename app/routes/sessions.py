@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Annotated, Any
 
 from fastapi import APIRouter, File, Form, Request, UploadFile
@@ -39,9 +38,10 @@ def list_sessions(workbench: WorkbenchDep) -> list[dict[str, Any]]:
 @router.post("", status_code=201, response_model=SessionSummary)
 def create_session(body: CreateFromFolder, workbench: WorkbenchDep) -> dict[str, Any]:
     """Create a session over a folder of scans that already lives on the server."""
-    if not Path(body.source).expanduser().exists():
+    source = workbench.data_root.check(body.source)  # 403 outside the data root, before the path is looked at
+    if not source.exists():
         raise UploadError(f"{body.source}: no such file or directory")
-    session = workbench.create_from_folder(body.name, Path(body.source), body.format, body.frame)
+    session = workbench.create_from_folder(body.name, source, body.format, body.frame)
     return workbench.summary(session.id)
 
 
@@ -104,13 +104,24 @@ def journal(state: SessionDep) -> list[dict[str, Any]]:
     return [e.__dict__ for e in state.session.journal.entries()]
 
 
+class StepRequest(BaseModel):
+    revision: int | None = Field(
+        None, ge=0, description="the revision this undo/redo steps from (a retry then answers, not repeats)"
+    )
+
+
 @router.post("/{session_id}/undo", dependencies=[REQUIRE_SESSION])
-def undo(session_id: str, workbench: WorkbenchDep, author: Author = "anonymous") -> dict[str, int]:
-    """Back to the parent revision (409 when there is nothing to undo)."""
-    return {"revision": workbench.undo(session_id, author)}
+def undo(
+    session_id: str, workbench: WorkbenchDep, body: StepRequest | None = None, author: Author = "anonymous"
+) -> dict[str, int]:
+    """Back to the parent revision (409 when there is nothing to undo; 412 when ``revision`` is not
+    the head and was not undone already)."""
+    return {"revision": workbench.undo(session_id, author, None if body is None else body.revision)}
 
 
 @router.post("/{session_id}/redo", dependencies=[REQUIRE_SESSION])
-def redo(session_id: str, workbench: WorkbenchDep, author: Author = "anonymous") -> dict[str, int]:
-    """Forward to the revision last undone (409 when there is nothing to redo)."""
-    return {"revision": workbench.redo(session_id, author)}
+def redo(
+    session_id: str, workbench: WorkbenchDep, body: StepRequest | None = None, author: Author = "anonymous"
+) -> dict[str, int]:
+    """Forward to the revision last undone (409 when there is nothing to redo; 412 as for undo)."""
+    return {"revision": workbench.redo(session_id, author, None if body is None else body.revision)}

@@ -19,16 +19,22 @@ export function bindAuthorField(input, onChange = () => {}) {
   });
 }
 
+// A POST always carries a body: the server takes only JSON (or a form) so that no other site can
+// make a browser send one without asking first.
 export async function api(path, options = {}) {
   const headers = { ...(options.headers || {}) };
   if (authorName()) headers["X-Author"] = authorName();
-  const response = await fetch(path, { ...options, headers });
+  const method = (options.method || "GET").toUpperCase();
+  let body = options.body;
+  if (method === "POST" && body === undefined) body = "{}";
+  if (typeof body === "string") headers["Content-Type"] = "application/json";
+  const response = await fetch(path, { ...options, headers, body });
   const text = await response.text();
-  let body = text;
-  try { body = JSON.parse(text); } catch { /* plain text */ }
+  let answer = text;
+  try { answer = JSON.parse(text); } catch { /* plain text */ }
   if (!response.ok) {
-    const detail = body && body.detail ? body.detail : text;
+    const detail = answer && answer.detail ? answer.detail : text;
     throw new Error(typeof detail === "string" ? detail : JSON.stringify(detail));
   }
-  return body;
+  return answer;
 }

@@ -19,6 +19,10 @@ from starlette.websockets import WebSocketDisconnect
 from websockets.asyncio.client import ClientConnection
 from websockets.asyncio.client import connect as ws_connect
 
+from app.guard import OPEN_GRANT
+from app.view.presence import Presence
+from app.view_roles import may_send, message_type
+
 _PASSED_HEADERS = ("content-type", "content-encoding", "cache-control", "etag", "last-modified")
 
 
@@ -54,9 +58,31 @@ async def open_upstream(websocket: WebSocket, port: int) -> ClientConnection | N
         return None
 
 
-async def forward_socket(websocket: WebSocket, upstream: ClientConnection) -> None:
-    """Accept the browser's websocket and join it to the view's internal one until either side closes."""
+ANNOUNCE_TIMEOUT = 5.0  # seconds a browser's first camera may take to register it with viser
+_announcing: dict[int, asyncio.Lock] = {}  # per presence: one browser announced at a time
+
+
+async def forward_socket(
+    websocket: WebSocket, upstream: ClientConnection, presence: Presence | None = None, key: str | None = None
+) -> None:
+    """Accept the browser's websocket and join it to the view's internal one until either side closes.
+
+    What a browser below editor sends is filtered (:mod:`app.view_roles`). With ``presence`` and a view
+    ``key`` (the session page's own 3D view), the browser's first camera message - the one that makes
+    viser register it - goes through :meth:`Presence.announce`, so the view knows that client's key,
+    name and role.
+    """
     await websocket.accept(subprotocol=upstream.subprotocol)
+    grant = websocket.scope.get("state", {}).get("grant", OPEN_GRANT)
+    unannounced = presence is not None and key is not None
+
+    async def announce_with(payload: bytes) -> None:
+        assert presence is not None and key is not None
+        async with _announcing.setdefault(id(presence), asyncio.Lock()):
+            done = presence.announce(key, grant)
+            await upstream.send(payload)
+            if not await asyncio.to_thread(done.wait, ANNOUNCE_TIMEOUT):
+                presence.withdraw(done)
 
     async def to_browser() -> None:
         async for message in upstream:
@@ -66,14 +92,19 @@ async def forward_socket(websocket: WebSocket, upstream: ClientConnection) -> No
                 await websocket.send_text(message)
 
     async def to_viser() -> None:
+        nonlocal unannounced
         while True:
             message = await websocket.receive()
             if message["type"] == "websocket.disconnect":
                 return
-            if message.get("bytes") is not None:
-                await upstream.send(message["bytes"])
-            elif message.get("text") is not None:
-                await upstream.send(message["text"])
+            payload = message.get("bytes") if message.get("bytes") is not None else message.get("text")
+            if payload is None or not may_send(grant, payload):  # a viewer's clicks and drags stop here
+                continue
+            if unannounced and isinstance(payload, bytes) and message_type(payload) == "ViewerCameraMessage":
+                unannounced = False
+                await announce_with(payload)
+            else:
+                await upstream.send(payload)
 
     tasks = [asyncio.create_task(to_browser()), asyncio.create_task(to_viser())]
     try:

@@ -5,6 +5,8 @@ from __future__ import annotations
 import threading
 from typing import Any
 
+from app.view.comment_labels import show_comments, show_when_ready
+from app.view.presence import presence_of
 from app.view.session_view import SessionViewer
 from app.workbench import Workbench
 
@@ -24,6 +26,8 @@ class ViewerRegistry:
             viewer = self._viewers.get(session_id)
             if viewer is None:
                 viewer = self._viewers[session_id] = SessionViewer(self.workbench, session_id)
+                presence_of(viewer)  # before any browser connects: who is who on it
+                show_when_ready(viewer)  # its comments, once it has its scans
             return viewer
 
     def existing(self, session_id: str) -> SessionViewer | None:
@@ -33,6 +37,7 @@ class ViewerRegistry:
         viewer = self._viewers.get(session_id)
         if viewer is not None:
             viewer.on_revision()
+            show_comments(viewer)  # notes on scans move with them; new ones appear
 
     def _on_job(self, job: Any) -> None:
         viewer = self._viewers.get(job.session_id)

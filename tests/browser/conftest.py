@@ -47,8 +47,9 @@ def free_port() -> int:
 
 
 class LiveServer:
-    def __init__(self, sessions_dir: Path) -> None:
-        self.app = create_app(sessions_dir)
+    def __init__(self, sessions_dir: Path, **options: Any) -> None:
+        """``options`` go to ``create_app`` (e.g. ``require_token=True``: as if bound off loopback)."""
+        self.app = create_app(sessions_dir, **options)
         self.port = free_port()
         self.url = f"http://127.0.0.1:{self.port}"
         config = uvicorn.Config(self.app, host="127.0.0.1", port=self.port, log_level="warning", lifespan="on")
@@ -102,11 +103,11 @@ def demo_sessions(tmp_path: Path) -> Path:
 
 
 @pytest.fixture
-def live_server() -> Iterator[Callable[[Path], LiveServer]]:
+def live_server() -> Iterator[Callable[..., LiveServer]]:
     servers: list[LiveServer] = []
 
-    def start(sessions_dir: Path) -> LiveServer:
-        server = LiveServer(sessions_dir).__enter__()
+    def start(sessions_dir: Path, **options: Any) -> LiveServer:
+        server = LiveServer(sessions_dir, **options).__enter__()
         servers.append(server)
         return server
 

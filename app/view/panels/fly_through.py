@@ -17,10 +17,10 @@ from app.fly_through import (
     RENDER_KIND,
     SIZES,
     RenderRequest,
+    change_keyframes,
     keyframe_from_view,
     keyframes_of,
     list_renders,
-    save_keyframes,
     start_render,
 )
 from app.view.panels.host import ViewerHost
@@ -85,9 +85,10 @@ class FlyThroughPanel:
         if client is None:
             raise ValueError("no browser camera to take the view from")
         camera = client.camera
-        keyframes = keyframes_of(self.session)
-        keyframes.append(keyframe_from_view(camera.position, camera.wxyz, camera.fov))
-        save_keyframes(self.workbench, self.session_id, keyframes, self.viewer.author(event))
+        added = keyframe_from_view(camera.position, camera.wxyz, camera.fov)
+        change_keyframes(
+            self.workbench, self.session_id, lambda keyframes: keyframes.append(added), self.viewer.author(event)
+        )
 
     def _edit(self, event: Any) -> None:
         keyframes = keyframes_of(self.session)
@@ -99,13 +100,22 @@ class FlyThroughPanel:
             if event.client is not None:
                 self._move_camera(event.client, keyframes[index].pose(), keyframes[index].fov_deg)
             return
-        if action == "Delete":
-            keyframes.pop(index)
-            target = min(index, len(keyframes) - 1)
-        else:
-            target = max(0, index - 1) if action == "Up" else min(len(keyframes) - 1, index + 1)
-            keyframes.insert(target, keyframes.pop(index))
-        save_keyframes(self.workbench, self.session_id, keyframes, self.viewer.author(event))
+        shown = keyframes[index]
+        target = -1
+
+        def edit(stored: list[Keyframe]) -> None:  # on the keyframes as stored now: the one shown, if still there
+            nonlocal target
+            at = next((n for n, k in enumerate(stored) if _same_view(k, shown)), None)
+            if at is None:
+                raise ValueError("that keyframe was changed by someone else meanwhile; pick it again")
+            if action == "Delete":
+                stored.pop(at)
+                target = min(at, len(stored) - 1)
+            else:
+                target = max(0, at - 1) if action == "Up" else min(len(stored) - 1, at + 1)
+                stored.insert(target, stored.pop(at))
+
+        change_keyframes(self.workbench, self.session_id, edit, self.viewer.author(event))
         if target >= 0:
             self.selected.value = str(target + 1)  # type: ignore[misc]  # the moved keyframe stays selected
 
@@ -277,3 +287,12 @@ class FlyThroughPanel:
             for r in renders
         ]
         self.downloads.content = f"<p>Download:</p><ul>{''.join(links)}</ul>" if links else ""
+
+
+def _same_view(a: Keyframe, b: Keyframe) -> bool:
+    """Whether two keyframes are the same view (as stored: JSON round trips keep floats exactly)."""
+    return bool(
+        np.allclose(a.position, b.position, atol=1e-9)
+        and np.allclose(a.orientation, b.orientation, atol=1e-9)
+        and abs(a.fov_deg - b.fov_deg) < 1e-9
+    )
