@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from slam6d.errors import SessionError
-from slam6d.geometry import Matrix
+from slam6d.geometry import Matrix, check_rigid
 from slam6d.trace import to_jsonable
 
 
@@ -103,11 +103,13 @@ class Journal:
     ) -> int:
         """Store a new pose revision as a child of the current one and make it current.
 
-        Without ``graph`` the new revision keeps its parent's annotations.
+        Without ``graph`` the new revision keeps its parent's annotations. Every pose must be rigid
+        (:func:`slam6d.geometry.check_rigid`): a revision is kept forever, so a pose that is not one
+        is refused here with an :class:`InvalidValueError` naming it, and nothing is written.
         """
-        stack = np.stack([np.asarray(p, dtype=np.float64).reshape(4, 4) for p in poses])
-        if not np.isfinite(stack).all():
-            raise self._error(f"refusing to store non-finite poses ({kind})")
+        if not poses:
+            raise self._error(f"refusing to store a revision without poses ({kind})")
+        stack = np.stack([check_rigid(p, f"poses[{i}]") for i, p in enumerate(poses)])
         with self._write() as conn:
             parent = _head_of(conn)
             number = int(conn.execute("SELECT COALESCE(MAX(number), -1) + 1 FROM revisions").fetchone()[0])

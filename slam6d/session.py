@@ -26,7 +26,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from slam6d.errors import FormatError, SessionError
+from slam6d.camera_path import Keyframe, keyframe_from_dict, keyframe_to_dict
+from slam6d.errors import FormatError, InvalidValueError, SessionError
 from slam6d.geometry import CONVENTIONS, FrameConvention, Matrix
 from slam6d.io.registry import ReadOptions, list_scan_files, resolve_format
 from slam6d.journal import Journal, Revision, now
@@ -242,14 +243,43 @@ class Session:
     # -------------------------------------------------------------- render keyframes
 
     def camera_path(self) -> list[dict[str, Any]]:
-        """Render keyframes, as last saved: dicts as in a camera-path file (position, orientation_wxyz, fov_deg)."""
+        """Render keyframes, as last saved: dicts as in a camera-path file (position, orientation_wxyz, fov_deg).
+
+        Keyframes that cannot be rendered (stored by an older version that did not check them) are
+        left out, so a poisoned entry never wedges the path: :meth:`camera_path_problems` names them.
+        """
+        return self._saved_camera_path()[0]
+
+    def camera_path_problems(self) -> list[str]:
+        """Why each keyframe of the last saved path that :meth:`camera_path` leaves out is unusable."""
+        return self._saved_camera_path()[1]
+
+    def _saved_camera_path(self) -> tuple[list[dict[str, Any]], list[str]]:
         for entry in reversed(self.journal.entries()):
             if entry.kind == "camera_path":
-                return list(entry.parameters.get("keyframes", []))
-        return []
+                raw = entry.parameters.get("keyframes", [])
+                items = raw if isinstance(raw, list) else []
+                kept, problems = [], [] if isinstance(raw, list) else ["keyframes: not a list"]
+                for i, item in enumerate(items):
+                    try:
+                        kept.append(keyframe_to_dict(keyframe_from_dict(item, f"keyframes[{i}]")))
+                    except InvalidValueError as exc:
+                        problems.append(str(exc))
+                return kept, problems
+        return [], []
 
-    def set_camera_path(self, keyframes: list[dict[str, Any]], author: str) -> None:
-        self.journal.append(author, "camera_path", {"keyframes": keyframes})
+    def set_camera_path(self, keyframes: Sequence[dict[str, Any] | Keyframe], author: str) -> list[dict[str, Any]]:
+        """Replace the render keyframes (an empty list clears them); returns them as stored, normalised.
+
+        Every keyframe is checked first (finite, bounded position; non-zero quaternion, normalised;
+        field of view in range): one bad keyframe refuses the whole list and nothing is stored.
+        """
+        checked = [
+            keyframe_to_dict(k if isinstance(k, Keyframe) else keyframe_from_dict(k, f"keyframes[{i}]"))
+            for i, k in enumerate(keyframes)
+        ]
+        self.journal.append(author, "camera_path", {"keyframes": checked})
+        return checked
 
 
 # ------------------------------------------------------------------ session.toml
