@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from slam6d.errors import SessionError
+from slam6d.errors import InvalidValueError, SessionError
 from slam6d.geometry import Matrix, check_rigid
 from slam6d.trace import to_jsonable
 
@@ -222,3 +222,61 @@ def _redo_stack(entries: list[JournalEntry]) -> list[int]:
         elif e.revision is not None:
             stack.clear()
     return stack
+
+
+# ------------------------------------------------------------------ checking a journal file
+
+
+def check_journal_file(path: Path) -> list[str]:
+    """What is wrong with a journal file: empty when it is sound. Nothing is written to it.
+
+    Checked: SQLite's own ``PRAGMA integrity_check``; the two tables present; no triggers or views
+    (the journal has none, and a file from elsewhere must not run code on our inserts); every
+    revision's pose blob the size its scan count says, every pose rigid; every entry's parameters
+    JSON. Used when a server starts (a session that fails is reported, not opened) and before a
+    bundle's journal is taken in.
+    """
+    if not path.is_file():
+        return [f"{path.name}: missing"]
+    problems: list[str] = []
+    try:
+        # Not opened read-only: a journal left by a killed writer has a WAL to recover first.
+        with closing(sqlite3.connect(path, timeout=30)) as conn:
+            conn.execute("PRAGMA trusted_schema=OFF")
+            result = [row[0] for row in conn.execute("PRAGMA integrity_check")]
+            if result != ["ok"]:
+                return [f"{path.name}: integrity check failed: {'; '.join(map(str, result[:5]))}"]
+            objects = {(kind, name) for kind, name in conn.execute("SELECT type, name FROM sqlite_master")}
+            for table in ("entries", "revisions"):
+                if ("table", table) not in objects:
+                    problems.append(f"{path.name}: table '{table}' missing")
+            foreign = sorted(name for kind, name in objects if kind in ("trigger", "view"))
+            if foreign:
+                problems.append(f"{path.name}: holds triggers or views ({', '.join(foreign[:5])}); a journal has none")
+            if problems:
+                return problems
+            for number, scans, blob in conn.execute("SELECT number, scans, poses FROM revisions ORDER BY number"):
+                problems.extend(_revision_problems(number, scans, blob))
+            for entry_id, parameters in conn.execute("SELECT id, parameters FROM entries ORDER BY id"):
+                try:
+                    json.loads(parameters)
+                except (TypeError, ValueError):
+                    problems.append(f"entry {entry_id}: parameters are not JSON")
+    except sqlite3.DatabaseError as exc:
+        return [f"{path.name}: not a readable SQLite journal ({exc})"]
+    return problems
+
+
+def _revision_problems(number: Any, scans: Any, blob: Any) -> list[str]:
+    if not isinstance(number, int) or not isinstance(scans, int) or not isinstance(blob, bytes):
+        return [f"revision {number}: malformed row"]
+    if scans < 1 or len(blob) != scans * 16 * 8:
+        return [f"revision {number}: pose data of {len(blob)} bytes does not hold {scans} poses"]
+    stack = np.frombuffer(blob, dtype=np.float64).reshape(scans, 4, 4)
+    problems = []
+    for index, pose in enumerate(stack):
+        try:
+            check_rigid(pose, f"revision {number} poses[{index}]")
+        except InvalidValueError as exc:
+            problems.append(str(exc))
+    return problems

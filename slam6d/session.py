@@ -339,6 +339,29 @@ def write_config(folder: Path, config: SessionConfig) -> None:
     tmp.replace(path)
 
 
+def slugify(name: str) -> str:
+    """A folder name for a session called ``name``: letters, digits, '.', '_', '-' only."""
+    slug = re.sub(r"[^A-Za-z0-9._-]+", "-", name).strip("-._")[:60]
+    return slug or "session"
+
+
+def reserve_session_folder(root: Path, name: str) -> Path:
+    """Create (empty) and return a new folder for a session called ``name`` inside ``root``.
+
+    ``name``, then ``name-2``, ``name-3``...: the folder is made with an exclusive ``mkdir``, so two
+    sessions created at once never share one.
+    """
+    base, n = slugify(name), 1
+    root.mkdir(parents=True, exist_ok=True)
+    while True:
+        candidate = root / (base if n == 1 else f"{base}-{n}")
+        try:
+            candidate.mkdir()
+            return candidate
+        except FileExistsError:
+            n += 1
+
+
 def list_sessions(root: Path | str) -> list[Session]:
     """The sessions directly inside ``root`` (folders with a session.toml), by folder name."""
     root = Path(root)
