@@ -97,3 +97,56 @@ def test_a_poisoned_keyframe_is_refused_and_an_old_one_never_wedges_the_path(ses
     ]
     session.set_camera_path([], "ana")  # a path can always be cleared
     assert session.camera_path() == [] and session.camera_path_problems() == []
+
+
+def test_readers_refuse_what_is_not_a_regular_file_before_reading(tmp_path) -> None:
+    """A FIFO would block the reading thread forever, /dev/zero never ends: both refused at once."""
+    import os
+
+    from slam6d.errors import FormatError
+    from slam6d.io.registry import read_scan
+
+    fifo = tmp_path / "scan000.3d"
+    os.mkfifo(fifo)
+    with pytest.raises(FormatError, match="not a regular file \\(a FIFO\\)"):
+        read_scan(fifo, "uos")
+    with pytest.raises(FormatError, match="not a regular file \\(a device\\)"):
+        read_scan("/dev/zero", "xyz")
+    (tmp_path / "folder.ply").mkdir()
+    with pytest.raises(FormatError, match="not a regular file \\(a folder\\)"):
+        read_scan(tmp_path / "folder.ply", "ply")
+
+
+def test_errors_never_quote_the_content_of_the_file(tmp_path) -> None:
+    """A secret-looking first line must not come back in the message, whatever format is claimed."""
+    from slam6d.errors import Slam6dError
+    from slam6d.io.registry import read_scan
+
+    secret = "root:x:0:0:SECRET-TOKEN:/root:/bin/bash\nbin:x:1:1::/bin:/usr/sbin/nologin\n"
+    for suffix, fmt in (
+        (".csv", "csv"),
+        (".xyz", "xyz"),
+        (".3d", "uos"),
+        (".ply", "ply"),
+        (".pcd", "pcd"),
+        (".vtk", "vtk"),
+    ):
+        path = tmp_path / f"passwd{suffix}"
+        path.write_text(secret)
+        with pytest.raises(Slam6dError) as info:
+            read_scan(path, fmt)
+        message = str(info.value)
+        assert "SECRET" not in message and "root:x" not in message and "nologin" not in message, message
+
+
+def test_a_pose_carried_by_a_file_must_be_rigid(tmp_path) -> None:
+    from slam6d.errors import FormatError
+    from slam6d.io.pcd import write_pcd
+    from slam6d.io.registry import read_scan
+
+    path = tmp_path / "scaled.pcd"
+    write_pcd(path, np.random.default_rng(0).uniform(-1, 1, (20, 3)))
+    raw = path.read_bytes().replace(b"VIEWPOINT 0 0 0 1 0 0 0", b"VIEWPOINT 0 0 1e300 1 0 0 0")
+    path.write_bytes(raw)
+    with pytest.raises(FormatError, match=r"scaled\.pcd: pose: translation"):
+        read_scan(path)
