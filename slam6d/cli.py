@@ -281,7 +281,7 @@ def run(
     guess: Annotated[str, typer.Option(help="Octree initial guess: auto, always or never.")] = "auto",
     loops: Annotated[bool, typer.Option(help="Detect loops.")] = True,
     loop_closing: Annotated[bool, typer.Option(help="Close detected loops by error diffusion.")] = True,
-    relaxation: Annotated[str, typer.Option(help="Global relaxation: lum, simultaneous or none.")] = "lum",
+    relaxation: Annotated[str, typer.Option(help="Global relaxation: lum, graph, simultaneous or none.")] = "lum",
 ) -> None:
     """Register a whole sequence: sequential ICP, loop closing, global relaxation; write the trajectory."""
     import time
@@ -290,18 +290,20 @@ def run(
     from slam6d.io.registry import ReadOptions, read_sequence, resolve_format
 
     def make_config() -> Any:
-        from slam6d.icp import ICPConfig
-        from slam6d.pipeline import PipelineConfig
+        from slam6d.engine_settings import pipeline_config
 
-        return PipelineConfig(
-            voxel_size=voxel,
-            matching=matching,
-            metascan_scans=metascan_scans,
-            icp=ICPConfig(max_distance=max_distance, method=method),
-            octree_guess=guess,
-            loops=loops,
-            loop_closing=loop_closing,
-            relaxation=relaxation,
+        # the flags by their [engine] names: parsed as session.toml's settings are
+        return pipeline_config(
+            {
+                "voxel_size": voxel,
+                "matching": matching,
+                "metascan_scans": metascan_scans,
+                "icp": {"max_distance": max_distance, "method": method},
+                "octree_guess": guess,
+                "loops": loops,
+                "loop_closing": loop_closing,
+                "relaxation": relaxation,
+            }
         )
 
     began = time.perf_counter()
@@ -329,7 +331,7 @@ def run(
         read_seconds = time.perf_counter() - began
         try:
             config = configured.result()
-        except ValueError as exc:
+        except (ValueError, Slam6dError) as exc:
             raise typer.BadParameter(str(exc)) from None
     from slam6d.pipeline import Pipeline, write_results
 
@@ -347,6 +349,54 @@ def run(
     stages = ", ".join(f"{k} {v:.2f}s" for k, v in report.stage_seconds.items())
     typer.echo(f"times: reading {read_seconds:.2f}s, {stages}; total {time.perf_counter() - began:.2f}s")
     typer.echo(f"wrote {paths['poses']}, {paths['report']} and {len(sequence)} .frames files")
+
+
+@app.command()
+def relax(
+    session_dir: Annotated[Path, typer.Argument(help="Session folder (with session.toml).")],
+    method: Annotated[str, typer.Option(help="lum, graph (over the session's graph) or simultaneous.")] = "lum",
+    fixed: Annotated[list[int] | None, typer.Option(help="Scans held in place (repeat the option); default 0.")] = None,
+    out: Annotated[Path | None, typer.Option("--out", "-o", help="Write the relaxed poses as KITTI lines.")] = None,
+    commit: Annotated[bool, typer.Option(help="Store the relaxed poses as a new revision of the session.")] = False,
+    author: Annotated[str, typer.Option(help="Who the journal names for --commit.")] = "slam6d relax",
+) -> None:
+    """Relax a session's current revision with its [engine] settings: the workbench's Relax, from the shell."""
+    from slam6d.engine_settings import pipeline_config
+    from slam6d.io.poses import write_kitti_poses
+    from slam6d.relaxation_methods import reduced_models, relax_poses
+    from slam6d.residuals import displacements
+    from slam6d.session import Session
+    from slam6d.session_graph import graph_edges
+
+    session = Session.open(session_dir)
+    config = pipeline_config(session.config.engine)
+    with progress_bar("reading scans") as update:
+        sequence = session.load_sequence(update)
+    revision = session.get_revision()
+    models = reduced_models([s.points for s in sequence.scans], config.voxel_size, config.icp)
+    edges = graph_edges(len(revision.poses), revision.graph)
+    held = fixed or [0]
+    with progress_bar(f"relaxing ({method})") as update:
+        result = relax_poses(
+            method,
+            models,
+            revision.poses,
+            edges,
+            held,
+            config.relax,
+            progress=lambda done, _residual, _moved: update(done, config.relax.max_rounds),
+        )
+    typer.echo(
+        f"{method}: {result.iterations} round(s), point-to-plane RMS {100 * result.residual_before:.2f} -> "
+        f"{100 * result.residual_after:.2f} cm; largest move {max(displacements(revision.poses, result.poses)):.3f} m"
+    )
+    if out is not None:
+        write_kitti_poses(out, result.poses)
+        typer.echo(f"wrote {out} (canonical frame)")
+    if commit:
+        parameters = {"method": method, "fixed": held, "rounds": result.iterations}
+        number = session.journal.commit(result.poses, author, f"relax_{method}", parameters, revision.graph)
+        typer.echo(f"stored as revision {number}")
 
 
 bundle_app = typer.Typer(no_args_is_help=True, help="Hand a whole session (its history) over as one zip.")

@@ -375,6 +375,19 @@ class FrameConvention:
         matrix[:3, :3] = self.metres_per_unit * self.axes_matrix
         return matrix
 
+    def information_to_native(self, information: Matrix) -> Matrix:
+        """A relative pose's 6x6 information (translation, rotation) in this frame instead of the canonical one.
+
+        Native relative poses are the canonical ones conjugated by the similarity, so a canonical
+        tangent (t, r) maps to (axesᵀ t / s, det(axes) axesᵀ r); information transforms by the inverse
+        of that map, on both sides.
+        """
+        axes = self.axes_matrix
+        back = np.zeros((6, 6))
+        back[:3, :3] = self.metres_per_unit * axes
+        back[3:, 3:] = np.linalg.det(axes) * axes
+        return back.T @ np.asarray(information, dtype=np.float64) @ back
+
     def similarity_from_canonical(self) -> Matrix:
         matrix = np.eye(4)
         matrix[:3, :3] = self.axes_matrix.T / self.metres_per_unit

@@ -52,7 +52,7 @@ from slam6d.relax import (
     set_up,
 )
 
-__all__ = ["lum_relaxation", "match_edge"]
+__all__ = ["lum_relaxation", "match_edge", "pair_information"]
 
 
 @numba.njit(cache=True, nogil=True)
@@ -140,12 +140,22 @@ def match_edge(models: ScanModels, poses: Sequence[Matrix], pair: NeighbourPair,
     model = models.index(pair.i)
     start = invert(poses[pair.i]) @ poses[pair.j]
     result = icp(model, data, start, cfg)
-    data_idx, model_idx = correspondences(model, data, result.transform, cfg.max_distance, limit=-1)
-    placed = transform_points(result.transform, data[data_idx])
+    return PoseEdge(pair.i, pair.j, result.transform, pair_information(models, pair, result.transform, config))
+
+
+def pair_information(models: ScanModels, pair: NeighbourPair, relative: Matrix, config: RelaxationConfig) -> Matrix:
+    """LUM's information matrix of scan j placed at ``relative`` in scan i's frame, from their closest-point pairs.
+
+    What a relaxation weighs an edge by, and what a g2o export writes for it. Without pairs (the scans
+    do not overlap at that pose) the information is zero: the edge says nothing.
+    """
+    data = models.thinned(pair.j, config.edge_points)
+    model = models.index(pair.i)
+    data_idx, model_idx = correspondences(model, data, relative, models.config.max_distance, limit=-1)
+    placed = transform_points(relative, data[data_idx])
     sigma2 = float(np.mean(np.sum((placed - model.points[model_idx]) ** 2, axis=1))) if len(data_idx) else 1.0
     # floor sigma at a millimetre: a perfect synthetic match must not get infinite weight
-    info = point_pair_information(placed, result.transform, max(sigma2, 1e-6))
-    return PoseEdge(pair.i, pair.j, result.transform, info)
+    return point_pair_information(placed, relative, max(sigma2, 1e-6))
 
 
 @dataclass

@@ -49,6 +49,7 @@ from slam6d.events import (
     ScanSummary,
 )
 from slam6d.geometry import Matrix, invert
+from slam6d.graph_relaxation import GraphEdge, trajectory_graph
 from slam6d.icp import ICPConfig, ICPIteration, ICPResult, icp_iterations
 from slam6d.initial_guess import GuessResult, OctreeSearchConfig, extrapolate_odometry, octree_guess
 from slam6d.io.frames import FrameType, write_sequence_frames
@@ -60,13 +61,12 @@ from slam6d.loops import (
     loop_correction,
     verify,
 )
-from slam6d.lum import lum_relaxation
 from slam6d.model import ModelIndex, StackedModel
 from slam6d.octree import Occupancy, Octree, reduce_points
 from slam6d.pair import MIN_FITNESS, Outcome, better_fit, is_poor
 from slam6d.relax import Cancelled, RelaxationConfig, RelaxationResult, ScanModels
+from slam6d.relaxation_methods import models_icp_config, relax_poses
 from slam6d.scan import ScanSequence
-from slam6d.simultaneous import simultaneous_matching
 from slam6d.trace import to_jsonable, write_trace
 
 MATCHING = ("metascan", "pairwise")
@@ -75,7 +75,7 @@ MATCHING = ("metascan", "pairwise")
 WORKER_THREADS = min(2, os.cpu_count() or 1)
 PREPARE_AHEAD = 3
 GUESS_MODES = ("auto", "always", "never")
-RELAXATION = ("lum", "simultaneous", "none")
+RELAXATION = ("lum", "graph", "simultaneous", "none")  # see slam6d.relaxation_methods
 
 __all__ = ["Cancelled", "Pipeline", "PipelineConfig", "write_results"]
 
@@ -178,10 +178,7 @@ class Pipeline:
         self.relaxation_result: RelaxationResult | None = None
         self.report: PipelineReport | None = None
         self._cancel: Callable[[], bool] | None = None
-        self._icp_config = replace(config.icp, data_voxel_size=0.0)
-        if 0 < self._icp_config.normal_voxel_size <= config.voxel_size:
-            # the models are reduced already: their plane sample is every point, and shares their kd-tree
-            self._icp_config = replace(self._icp_config, normal_voxel_size=0.0)
+        self._icp_config = models_icp_config(config.icp, config.voxel_size)  # the models are reduced already
         # sequential matches only need to hand loop closing and relaxation a close start
         self._sequential_config = replace(
             self._icp_config, epsilon=max(config.icp.epsilon, config.registration_epsilon)
@@ -481,17 +478,25 @@ class Pipeline:
         def record(iteration: int, residual: float, moved: list[int]) -> None:
             progress.append(RelaxationProgressed(iteration, residual, moved))
 
-        relax = simultaneous_matching if self.config.relaxation == "simultaneous" else lum_relaxation
         if self.config.relaxation == "lum" and self.config.relax_registration_models:
             for k in range(len(self.sequence)):
                 model = self.registration_model(k)
                 if model is not self.models.index(k):
                     self.models.share_plane_model(k, model)
-        result = relax(
-            self.models, self.poses, fixed=(0,), config=self.config.relax, progress=record, cancel=self._cancel
+        # the graph method relaxes over the trajectory and the loops this run accepted
+        loops = [GraphEdge(h.i, h.j, h.transform) for h in self.loops if h.accepted]
+        result = relax_poses(
+            self.config.relaxation,
+            self.models,
+            self.poses,
+            trajectory_graph(len(self.sequence), loops),
+            fixed=(0,),
+            config=self.config.relax,
+            progress=record,
+            cancel=self._cancel,
         )
         self.relaxation_result = result
-        flag = FrameType.LUM if self.config.relaxation == "lum" else FrameType.ICP
+        flag = FrameType.LUM if self.config.relaxation in ("lum", "graph") else FrameType.ICP
         for k, pose in enumerate(result.poses):
             self._set_pose(k, pose, flag)
         yield from progress

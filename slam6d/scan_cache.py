@@ -67,6 +67,10 @@ class ScanCache:
         partial = self.path.with_suffix(".tmp.npz")  # written aside, then renamed: a crash leaves no half cache
         np.savez(partial, fingerprint=np.array(fingerprint), **_to_arrays(sequence))  # type: ignore[arg-type]
         partial.replace(self.path)
+        # the points as every later open reads them back (float32): what a session computes must not
+        # depend on whether its cache existed yet (relaxation moved scans ~0.1 mm apart otherwise)
+        for scan in scans:
+            scan.points = scan.points.astype(np.float32).astype(np.float64)
         return sequence
 
     def _from_arrays(self, data: Any) -> ScanSequence:

@@ -105,7 +105,6 @@ def test_keyframes_are_added_reordered_deleted_and_saved_in_the_session(client, 
         ("post", "/api/sessions/corridor/render", {"name": "clip.avi"}, 422),
         ("post", "/api/sessions/nope/render", {}, 404),
         ("get", "/api/sessions/corridor/renders/missing.mp4", None, 404),
-        ("get", "/api/sessions/corridor/renders/..%2Fsession.toml", None, 404),
         ("get", "/api/sessions/corridor/renders/session.toml", None, 404),
     ],
 )
@@ -182,3 +181,13 @@ def test_cli_renders_a_session_along_its_saved_path(sessions_dir, tmp_path):
     saved = json.loads(used.read_text())["keyframes"]
     assert [k["position"] for k in saved] == [k["position"] for k in keyframes]
     assert np.allclose([k["orientation_wxyz"] for k in saved], [k["orientation_wxyz"] for k in keyframes])
+
+
+def test_a_dot_dot_render_name_reaches_the_download_guard_and_is_refused(client):
+    """An encoded ``..`` is decoded before routing, so it arrives at the handler as the name itself: the
+    answer is the handler's own refusal (naming it), not the router's "Not Found". (An encoded slash
+    never reaches it: a name holds no "/", so ``..%2Fsession.toml`` cannot even match the route.)"""
+    for encoded in ("%2E%2E", ".%2E", "..%5Csession.toml"):
+        response = client.get(f"/api/sessions/corridor/renders/{encoded}")
+        assert response.status_code == 404
+        assert response.json()["detail"].startswith("no render '..")

@@ -1,0 +1,97 @@
+"""Loop closing and relaxation of a session as background jobs: error diffusion, then a global solve.
+
+Both refuse up front what cannot work (no loop to close; a graph whose scans are not all tied to a
+fixed scan, as :class:`~slam6d.errors.RelaxationError` naming the loose scans), so a job only
+starts when it can finish. The relaxation methods are the engine's, under the engine's names and
+with the same default as ``slam6d run`` (``lum``), so a session relaxes the same from the browser and
+from ``slam6d relax``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+from app.editing.context import EditContext
+from app.jobs import Cancel, Progress, Work
+from app.workbench import EditError
+from slam6d.errors import Cancelled
+from slam6d.loops import LoopHypothesis, diffuse_loop_correction, loop_correction
+from slam6d.posegraph import check_connected
+from slam6d.relaxation_methods import RELAXATION_METHODS, relax_poses
+from slam6d.residuals import displacements
+from slam6d.session_graph import graph_edges
+
+
+class Relaxation:
+    def __init__(self, context: EditContext) -> None:
+        self.context = context
+
+    def close_loops_job(self, session_id: str, author: str) -> Work:
+        """Error diffusion over every loop edge that carries an ICP transform, oldest loop end first."""
+        context = self.context
+        edges = context.edges(session_id)
+        loops = [e for e in edges if e["kind"] != "sequential" and e.get("transform") is not None]
+        if not loops:
+            raise EditError("there is no accepted loop or manual edge with an ICP transform to close")
+        loops.sort(key=lambda e: (e["j"], e["i"]))
+
+        def work(progress: Progress, cancel: Cancel) -> dict[str, Any]:
+            poses = context.poses(session_id)
+            before = [p.copy() for p in poses]
+            for n, edge in enumerate(loops):
+                if cancel():
+                    raise Cancelled("loop closing cancelled")
+                hyp = LoopHypothesis(edge["i"], edge["j"], 0.0, 0.0, transform=np.asarray(edge["transform"]))
+                poses = diffuse_loop_correction(poses, hyp.i, hyp.j, loop_correction(poses, hyp))
+                progress("closing loops", n + 1, len(loops))
+            params = {"loops": [[e["i"], e["j"]] for e in loops], "displacement": displacements(before, poses)}
+            return context.commit_checked(session_id, poses, author, "close_loops", params)
+
+        return work
+
+    def check_relaxable(self, session_id: str, method: str, fixed: Sequence[int]) -> None:
+        """Refuse up front what cannot run: an unknown method, no fixed scan, and for ``graph`` a graph
+        whose scans are not all tied to a fixed one (RelaxationError naming the loose scans)."""
+        if method not in RELAXATION_METHODS:
+            raise EditError(f"unknown relaxation '{method}'; known: {', '.join(RELAXATION_METHODS)}", 422)
+        count = self.context.check_scan(session_id, *fixed)
+        if not fixed:
+            raise EditError("no fixed scan: relaxation needs at least one scan held in place (usually scan 0)")
+        if method == "graph":
+            check_connected(count, [(e["i"], e["j"]) for e in self.context.edges(session_id)], fixed)
+
+    def relax_job(self, session_id: str, author: str, method: str = "lum", fixed: Sequence[int] = (0,)) -> Work:
+        """The engine's relaxation by name (:func:`slam6d.relaxation_methods.relax_poses`) with the session's
+        settings, as ``slam6d relax SESSION --method METHOD`` runs it; ``graph`` relaxes over the session's graph."""
+        self.check_relaxable(session_id, method, fixed)
+        context = self.context
+        config = context.config(session_id).relax
+
+        def work(progress: Progress, cancel: Cancel) -> dict[str, Any]:
+            models = context.models(session_id)
+            poses = context.poses(session_id)
+            revision = context.session(session_id).get_revision()
+            result = relax_poses(
+                method,
+                models,
+                poses,
+                graph_edges(len(poses), revision.graph),
+                fixed,
+                config,
+                progress=lambda done, _residual, _moved: progress(f"{method}: rounds", done, config.max_rounds),
+                cancel=cancel,
+                edge_progress=lambda done, total: progress(f"{method}: matching edges", done, total),
+            )
+            params = {
+                "method": method,
+                "fixed": list(fixed),
+                "rounds": result.iterations,
+                "residual_plane": [result.residual_before, result.residual_after],
+                "displacement": displacements(poses, result.poses),
+            }
+            return context.commit_checked(session_id, result.poses, author, f"relax_{method}", params)
+
+        return work

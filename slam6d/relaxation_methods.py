@@ -1,0 +1,79 @@
+"""Global relaxation by name: the one call behind ``slam6d run --relaxation``, ``slam6d relax`` and the workbench.
+
+=================  ==========================================================================
+name               what it does
+=================  ==========================================================================
+``lum``            :func:`slam6d.lum.lum_relaxation`: one joint point-to-plane step per round
+                   over every overlapping pair (found from the scans, not from a graph)
+``graph``          :func:`slam6d.graph_relaxation.graph_relaxation`: ICP per edge of a given
+                   graph (sequential, accepted loops, edges added by hand), then a pose-graph solve
+``simultaneous``   :func:`slam6d.simultaneous.simultaneous_matching`: the seed's queue of ICP
+                   matches of each scan against the union of its overlapping neighbours
+=================  ==========================================================================
+
+Every caller builds its scan models with :func:`reduced_models` (the pipeline's reduction and
+ICP settings), so the same poses, graph and ``[engine]`` settings relax to the same poses whether
+the command line or the workbench asks.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import replace
+
+import numpy as np
+
+from slam6d.errors import Slam6dError
+from slam6d.geometry import Matrix
+from slam6d.graph_relaxation import GraphEdge, graph_relaxation
+from slam6d.icp import FloatArray, ICPConfig
+from slam6d.lum import lum_relaxation
+from slam6d.octree import reduce_points
+from slam6d.relax import Progress, RelaxationConfig, RelaxationResult, ScanModels
+from slam6d.simultaneous import simultaneous_matching
+
+RELAXATION_METHODS = ("lum", "graph", "simultaneous")
+
+__all__ = ["RELAXATION_METHODS", "models_icp_config", "reduced_models", "relax_poses"]
+
+
+def models_icp_config(icp: ICPConfig, voxel_size: float) -> ICPConfig:
+    """ICP settings for scans reduced to ``voxel_size`` already: no further data thinning, and the
+    plane sample is every point (sharing the scan's kd-tree) when the normal voxel is no coarser."""
+    config = replace(icp, data_voxel_size=0.0)
+    if 0 < config.normal_voxel_size <= voxel_size:
+        config = replace(config, normal_voxel_size=0.0)
+    return config
+
+
+def reduced_models(points: Sequence[FloatArray], voxel_size: float, icp: ICPConfig) -> ScanModels:
+    """Each scan reduced to one real point per ``voxel_size`` cube, as the pipeline reduces its models."""
+    reduced = [p[reduce_points(p, voxel_size)] if voxel_size > 0 else p for p in points]
+    return ScanModels(reduced, models_icp_config(icp, voxel_size))
+
+
+def relax_poses(
+    method: str,
+    models: ScanModels,
+    poses: Sequence[Matrix],
+    edges: Sequence[GraphEdge] = (),
+    fixed: Iterable[int] = (0,),
+    config: RelaxationConfig = RelaxationConfig(),
+    progress: Progress | None = None,
+    cancel: Callable[[], bool] | None = None,
+    edge_progress: Callable[[int, int], None] | None = None,
+) -> RelaxationResult:
+    """Relax ``poses`` with the method named (table above); ``edges`` is the graph ``graph`` relaxes over.
+
+    ``progress(round, residual, moved)`` after each round; ``edge_progress(done, total)`` after each
+    edge's ICP (``graph`` only); :class:`~slam6d.errors.Cancelled` when ``cancel()`` turns true.
+    """
+    fixed = list(fixed)
+    current = [np.asarray(p, dtype=np.float64) for p in poses]
+    if method == "lum":
+        return lum_relaxation(models, current, fixed=fixed, config=config, progress=progress, cancel=cancel)
+    if method == "simultaneous":
+        return simultaneous_matching(models, current, fixed=fixed, config=config, progress=progress, cancel=cancel)
+    if method == "graph":
+        return graph_relaxation(models, current, edges, fixed, config, progress, cancel, edge_progress)
+    raise Slam6dError(f"unknown relaxation '{method}'; known: {', '.join(RELAXATION_METHODS)}")
