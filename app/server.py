@@ -19,10 +19,13 @@ from fastapi import FastAPI
 from fastapi.responses import FileResponse, RedirectResponse
 from fastapi.staticfiles import StaticFiles
 
+from app.limits import RequestLimits
 from app.routes import API_ROUTERS
 from app.routes.dependencies import REQUIRE_SESSION
 from app.routes.errors import install_error_handlers
 from app.workbench import Workbench
+
+UPLOAD_PATHS = ("/api/sessions/upload", "/api/sessions/import")  # multipart: streamed, bounded by the upload limit
 
 
 def static_dir() -> Path:
@@ -55,6 +58,11 @@ def create_app(sessions_dir: Path | str, viewers: bool = True, max_upload_mb: in
     app.state.workbench = workbench
     app.state.on_shutdown = []
     install_error_handlers(app)
+    app.add_middleware(
+        RequestLimits,
+        upload_limit=workbench.max_upload_bytes + (1 << 20),  # room for the multipart framing
+        upload_paths=UPLOAD_PATHS,
+    )
     for router in API_ROUTERS:
         app.include_router(router)
 

@@ -122,6 +122,27 @@ class Journal:
             )
         return number
 
+    def commit_first(
+        self, poses: Sequence[Matrix], author: str, kind: str, parameters: dict[str, Any] | None = None
+    ) -> int:
+        """Store revision 0 unless a revision exists already; the head either way.
+
+        Two requests that both find a new session without revisions (the first view and the first
+        poses, racing) would otherwise both store an "import"; the check and the insert share one
+        write transaction, so exactly one does.
+        """
+        stack = np.stack([check_rigid(p, f"poses[{i}]") for i, p in enumerate(poses)])
+        with self._write() as conn:
+            head = _head_of(conn)
+            if head is not None:
+                return head
+            entry = _insert_entry(conn, author, kind, parameters or {}, 0, 0)
+            conn.execute(
+                "INSERT INTO revisions (number, parent, entry_id, scans, poses, graph) VALUES (0,NULL,?,?,?,?)",
+                (entry.id, len(stack), stack.tobytes(), json.dumps({})),
+            )
+        return 0
+
     def undo(self, author: str) -> int:
         """Go back to the parent of the current revision (an entry of its own; nothing is deleted)."""
         with self._write() as conn:

@@ -30,6 +30,7 @@ from slam6d.camera_path import Keyframe, keyframe_from_dict, keyframe_to_dict
 from slam6d.errors import FormatError, InvalidValueError, SessionError
 from slam6d.geometry import CONVENTIONS, FrameConvention, Matrix
 from slam6d.io.registry import ReadOptions, list_scan_files, resolve_format
+from slam6d.io.source import check_regular_file
 from slam6d.journal import Journal, Revision, now
 from slam6d.scan import ScanSequence
 from slam6d.scan_cache import ScanCache
@@ -134,6 +135,8 @@ class Session:
             resolved = src if src.is_absolute() else folder / src
             if not resolved.exists():
                 raise SessionError(folder, f"scan source {src} does not exist")
+            if not resolved.is_dir():
+                check_regular_file(resolved)  # a device or FIFO named as a scan is refused now, unread
             fmt = resolve_format(resolved, format_name)
             if resolved.is_dir():
                 list_scan_files(resolved, fmt)
@@ -203,7 +206,7 @@ class Session:
         )
         sequence = cache.load(progress)
         if self.journal.head is None:
-            self.journal.commit(sequence.poses(), "system", "import", {"scans": len(sequence)})
+            self.journal.commit_first(sequence.poses(), "system", "import", {"scans": len(sequence)})
         poses = self.poses()
         if len(poses) != len(sequence):
             raise SessionError(

@@ -12,6 +12,7 @@ from typing import Any
 from fastapi import APIRouter
 
 from app.routes.dependencies import REQUIRE_SESSION, Author, EditorDep, WorkbenchDep
+from app.validation import IndexPath
 
 router = APIRouter(prefix="/api/sessions/{session_id}", tags=["loops"], dependencies=[REQUIRE_SESSION])
 
@@ -32,13 +33,13 @@ def detect_loops(
 
 
 @router.post("/loops/{k}/accept")
-def accept_loop(session_id: str, k: int, editor: EditorDep, author: Author = "anonymous") -> dict[str, Any]:
+def accept_loop(session_id: str, k: IndexPath, editor: EditorDep, author: Author = "anonymous") -> dict[str, Any]:
     """Hypothesis ``k``'s ICP-verified edge joins the graph (a new revision)."""
     return editor.loops.decide(session_id, k, True, author)
 
 
 @router.post("/loops/{k}/reject")
-def reject_loop(session_id: str, k: int, editor: EditorDep, author: Author = "anonymous") -> dict[str, Any]:
+def reject_loop(session_id: str, k: IndexPath, editor: EditorDep, author: Author = "anonymous") -> dict[str, Any]:
     """Hypothesis ``k`` is turned down (a new revision recording it)."""
     return editor.loops.decide(session_id, k, False, author)
 
