@@ -22,7 +22,7 @@ from fastapi.staticfiles import StaticFiles
 from app.limits import RequestLimits
 from app.routes import API_ROUTERS
 from app.routes.dependencies import REQUIRE_SESSION
-from app.routes.errors import install_error_handlers
+from app.routes.errors import document_errors, install_error_handlers
 from app.workbench import Workbench
 
 UPLOAD_PATHS = ("/api/sessions/upload", "/api/sessions/import")  # multipart: streamed, bounded by the upload limit
@@ -65,6 +65,7 @@ def create_app(sessions_dir: Path | str, viewers: bool = True, max_upload_mb: in
     )
     for router in API_ROUTERS:
         app.include_router(router)
+    document_errors(app)
 
     if viewers:
         import httpx

@@ -20,10 +20,11 @@ from typing import Any, BinaryIO
 import numpy as np
 
 from app.errors import EditError, UnknownSessionError, UploadError
-from app.jobs import JobManager
+from app.jobs import Job, JobManager
 from slam6d.archive import ArchiveLimits, extract_zip
 from slam6d.errors import SessionError, Slam6dError
 from slam6d.geometry import Matrix
+from slam6d.repair import JOB_ENTRY, SessionCheck, check_session, job_records
 from slam6d.scan import ScanSequence
 from slam6d.session import SESSION_FILE, Session, reserve_session_folder
 
@@ -63,11 +64,52 @@ class Workbench:
         self.sessions_dir = Path(sessions_dir)
         self.sessions_dir.mkdir(parents=True, exist_ok=True)
         self.max_upload_bytes = max_upload_bytes
-        self.jobs = JobManager()
+        self.jobs = JobManager(record=self._record_job)
         self._states: dict[str, SessionState] = {}
         self._lock = threading.Lock()
         self._revision_listeners: list[Callable[[str], None]] = []
         self._camera_path_listeners: list[Callable[[str], None]] = []
+        self.checks: dict[str, SessionCheck] = {}
+        self.check_sessions()
+
+    def check_sessions(self) -> dict[str, SessionCheck]:
+        """Check (and repair) every session once, at start: what was repaired is logged and listed
+        with the session; a session that cannot open says why, and the others open as usual."""
+        for session_id in self.session_ids():
+            check = check_session(self.sessions_dir / session_id)
+            self.checks[session_id] = check
+            for note in check.repaired:
+                log.warning("session %s repaired: %s", session_id, note)
+            if check.error:
+                log.error("session %s cannot open: %s", session_id, check.error)
+        return self.checks
+
+    def _record_job(self, job: Job, event: str) -> None:
+        """Journal a job's start and end, so one cut short by a crash is found and shown after a restart."""
+        try:
+            session = self.state(job.session_id).session
+            parameters: dict[str, Any] = {"id": job.id, "event": event, "kind": job.kind, "status": job.status}
+            if event == "started":
+                parameters["revision"] = session.journal.head
+            elif job.message:
+                parameters["message"] = job.message[:500]
+            session.journal.append(job.author, JOB_ENTRY, parameters)
+        except Exception:  # the job itself must not fail because its record could not be written
+            log.exception("could not journal job %s (%s)", job.id, event)
+
+    def recorded_job(self, job_id: str) -> dict[str, Any] | None:
+        """A job no longer (or never) in memory, as the journals last recorded it: an interrupted job
+        answers with the revision it started from instead of vanishing after a restart."""
+        for session_id in self.session_ids():
+            try:
+                entries = self.state(session_id).session.journal.entries()
+            except Exception:
+                continue
+            record = job_records(entries).get(job_id)
+            if record is not None:
+                status = "interrupted" if record.get("event") == "started" else record.get("status", "interrupted")
+                return {**record, "id": job_id, "session_id": session_id, "status": status, "from_journal": True}
+        return None
 
     # -------------------------------------------------------------- sessions
 
@@ -105,6 +147,9 @@ class Workbench:
     def state(self, session_id: str) -> SessionState:
         if not _ID.match(session_id) or not (self.sessions_dir / session_id / SESSION_FILE).is_file():
             raise UnknownSessionError(session_id)
+        check = self.checks.get(session_id)
+        if check is not None and check.error:
+            raise SessionError(self.sessions_dir / session_id, f"cannot be opened: {check.error}")
         with self._lock:
             if session_id not in self._states:
                 self._states[session_id] = SessionState(Session.open(self.sessions_dir / session_id))
@@ -121,9 +166,22 @@ class Workbench:
                 "revision": session.revision,
                 "format": session.config.format_name,
                 "error": None,
+                "repaired": self._repaired(session_id),
             }
         except Slam6dError as exc:
-            return {"id": session_id, "name": session_id, "scans": 0, "revision": 0, "format": "", "error": str(exc)}
+            return {
+                "id": session_id,
+                "name": session_id,
+                "scans": 0,
+                "revision": 0,
+                "format": "",
+                "error": str(exc),
+                "repaired": self._repaired(session_id),
+            }
+
+    def _repaired(self, session_id: str) -> list[str]:
+        check = self.checks.get(session_id)
+        return list(check.repaired) if check is not None else []
 
     def create_from_folder(
         self, name: str, source: Path, format_name: str | None = None, frame: str | None = None

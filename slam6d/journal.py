@@ -56,16 +56,19 @@ class Journal:
 
     def __init__(self, path: Path) -> None:
         self.path = path
-        with self._write() as conn:
-            conn.execute(
-                "CREATE TABLE IF NOT EXISTS entries (id INTEGER PRIMARY KEY AUTOINCREMENT, time TEXT NOT NULL,"
-                " author TEXT NOT NULL, kind TEXT NOT NULL, parameters TEXT NOT NULL, head INTEGER,"
-                " revision INTEGER)"
-            )
-            conn.execute(
-                "CREATE TABLE IF NOT EXISTS revisions (number INTEGER PRIMARY KEY, parent INTEGER,"
-                " entry_id INTEGER NOT NULL, scans INTEGER NOT NULL, poses BLOB NOT NULL, graph TEXT NOT NULL)"
-            )
+        try:
+            with self._write() as conn:
+                conn.execute(
+                    "CREATE TABLE IF NOT EXISTS entries (id INTEGER PRIMARY KEY AUTOINCREMENT, time TEXT NOT NULL,"
+                    " author TEXT NOT NULL, kind TEXT NOT NULL, parameters TEXT NOT NULL, head INTEGER,"
+                    " revision INTEGER)"
+                )
+                conn.execute(
+                    "CREATE TABLE IF NOT EXISTS revisions (number INTEGER PRIMARY KEY, parent INTEGER,"
+                    " entry_id INTEGER NOT NULL, scans INTEGER NOT NULL, poses BLOB NOT NULL, graph TEXT NOT NULL)"
+                )
+        except sqlite3.DatabaseError as exc:  # not a journal, or damaged beyond what SQLite opens
+            raise SessionError(path.parent, f"{path.name} is not a readable journal ({exc})") from None
 
     def _error(self, message: str) -> SessionError:
         return SessionError(self.path.parent, message)

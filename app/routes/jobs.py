@@ -68,9 +68,12 @@ def start_job(
 def get_job(job_id: str, workbench: WorkbenchDep) -> dict[str, Any]:
     """A job's status, stage, progress and (once done) result."""
     job = workbench.jobs.get(job_id)
-    if job is None:
+    if job is not None:
+        return job.as_dict()
+    recorded = workbench.recorded_job(job_id)  # a job of an earlier server process, e.g. cut short by a crash
+    if recorded is None:
         raise EditError(f"no job '{job_id}'", 404)
-    return job.as_dict()
+    return recorded
 
 
 @router.delete("/jobs/{job_id}")

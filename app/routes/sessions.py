@@ -23,6 +23,7 @@ class SessionSummary(BaseModel):
     revision: int
     format: str
     error: str | None = None
+    repaired: list[str] = Field(default_factory=list, description="what the server repaired when it started")
 
 
 class CreateFromFolder(RequestBody):
