@@ -23,10 +23,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from pydantic import BaseModel, Field
+from pydantic import Field
 
 from app.errors import WorkbenchError
 from app.jobs import Cancel, Job, Progress, Work
+from app.validation import RequestBody
 from app.workbench import Workbench
 from slam6d.camera_path import CameraPath, Keyframe, camera_path_from_dict, trajectory_path
 from slam6d.geometry import Matrix
@@ -91,7 +92,7 @@ def keyframe_from_view(position: Any, wxyz: Any, fov_rad: float) -> Keyframe:
 # ------------------------------------------------------------------ render jobs
 
 
-class RenderRequest(BaseModel):
+class RenderRequest(RequestBody):
     width: int = Field(640, ge=16, le=3840, description="pixels; even (H.264)")
     height: int = Field(480, ge=16, le=2160, description="pixels; even (H.264)")
     fps: float = Field(30.0, gt=0.0, le=120.0)

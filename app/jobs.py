@@ -9,10 +9,10 @@ browser that reconnects can still see how the last run ended.
 
 from __future__ import annotations
 
-import itertools
 import threading
 import time
 import traceback
+import uuid
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -66,11 +66,18 @@ class Job:
         }
 
 
+# Finished jobs kept in memory for browsers that reconnect; older ones are pruned (the journal keeps them).
+KEEP_FINISHED = 200
+
+
 class JobManager:
-    def __init__(self) -> None:
+    """Runs jobs on threads. ``record(job, event)`` is told when a job starts and ends ("started",
+    "finished"), so the workbench can journal them and find jobs a crash cut short."""
+
+    def __init__(self, record: Callable[[Job, str], None] | None = None) -> None:
         self._jobs: dict[str, Job] = {}
         self._lock = threading.Lock()
-        self._ids = itertools.count(1)
+        self._record = record
         self._listeners: list[Callable[[Job], None]] = []
 
     def on_change(self, listener: Callable[[Job], None]) -> None:
@@ -95,8 +102,14 @@ class JobManager:
         with self._lock:
             if any(j.session_id == session_id and j.active for j in self._jobs.values()):
                 raise JobConflictError(f"a job is already running on session '{session_id}'")
-            job = Job(f"job-{next(self._ids)}", session_id, kind, author, dict(parameters or {}))
+            # unique across restarts: the journal may still hold the ids of an earlier process
+            job = Job(f"job-{uuid.uuid4().hex[:12]}", session_id, kind, author, dict(parameters or {}))
             self._jobs[job.id] = job
+            finished = [j for j in self._jobs.values() if not j.active]
+            for old in sorted(finished, key=lambda j: j.finished or 0.0)[: max(0, len(finished) - KEEP_FINISHED)]:
+                del self._jobs[old.id]
+        if self._record is not None:
+            self._record(job, "started")
         thread = threading.Thread(target=self._run, args=(job, work), name=job.id, daemon=True)
         thread.start()
         return job
@@ -126,6 +139,8 @@ class JobManager:
                 if not isinstance(exc, Slam6dError):
                     traceback.print_exc()
         job.finished = time.time()
+        if self._record is not None:
+            self._record(job, "finished")
         self._notify(job)
 
     def get(self, job_id: str) -> Job | None:

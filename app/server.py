@@ -23,15 +23,18 @@ from fastapi.staticfiles import StaticFiles
 from app.data_root import DataRoot
 from app.errors import UnknownSessionError
 from app.guard import GuardPolicy, RequestGuard, authorize, is_loopback, server_names, session_from_path
+from app.limits import RequestLimits
 from app.revisions import RevisionHeaders, add_revision_errors, check_revision
 from app.routes import API_ROUTERS
 from app.routes.dependencies import REQUIRE_SESSION
-from app.routes.errors import install_error_handlers
+from app.routes.errors import document_errors, install_error_handlers
 from app.routes.sharing import build_sharing_router
 from app.tokens import TokenStore
 from app.workbench import Workbench
 from slam6d.errors import Slam6dError
 from slam6d.journal import Journal
+
+UPLOAD_PATHS = ("/api/sessions/upload", "/api/sessions/import")  # multipart: streamed, bounded by the upload limit
 
 
 def static_dir() -> Path:
@@ -79,13 +82,20 @@ def create_app(
     app.state.workbench = workbench
     app.state.on_shutdown = []
     install_error_handlers(app)
-    # before any route is added: every route gets the guard's dependencies
+    app.add_middleware(
+        RequestLimits,
+        upload_limit=workbench.max_upload_bytes + (1 << 20),  # room for the multipart framing
+        upload_paths=UPLOAD_PATHS,
+    )
+    # before any route is added: every route gets the guard's dependencies; the guard's middleware
+    # is added last, so it is the outermost and nothing (not even a size refusal) answers before it
     app.router.dependencies.extend(
         add_guards(app, workbench, bind_host, shared if require_token is None else require_token, names)
     )
     for router in API_ROUTERS:
         app.include_router(router)
     app.include_router(build_sharing_router(app.state.tokens))  # who am I, share links
+    document_errors(app)
 
     if viewers:
         import httpx

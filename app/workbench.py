@@ -7,27 +7,30 @@ browsers on a session show the same revision.
 
 from __future__ import annotations
 
-import io
+import logging
 import re
 import shutil
 import threading
-import zipfile
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path, PurePosixPath
-from typing import Any
+from typing import Any, BinaryIO
 
 import numpy as np
 
 from app.data_root import DataRoot
 from app.errors import EditError, UnknownSessionError, UploadError
-from app.jobs import JobManager
+from app.jobs import Job, JobManager
+from slam6d.archive import ArchiveLimits, extract_zip
 from slam6d.errors import SessionError, Slam6dError
 from slam6d.geometry import Matrix
 from slam6d.journal import Change, Revision, StaleRevisionError
+from slam6d.repair import JOB_ENTRY, SessionCheck, check_session, job_records
 from slam6d.scan import ScanSequence
-from slam6d.session import SESSION_FILE, Session
+from slam6d.session import SESSION_FILE, Session, reserve_session_folder
 
+log = logging.getLogger("slam6d.workbench")
 _ID = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,99}$")
 _UPLOAD_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,199}$")
 
@@ -58,11 +61,6 @@ class SessionState:
                     scan.pose = pose
 
 
-def slugify(name: str) -> str:
-    slug = re.sub(r"[^A-Za-z0-9._-]+", "-", name).strip("-._")[:60]
-    return slug or "session"
-
-
 class Workbench:
     def __init__(
         self,
@@ -74,11 +72,52 @@ class Workbench:
         self.data_root = data_root or DataRoot(None, shared=False)
         self.sessions_dir.mkdir(parents=True, exist_ok=True)
         self.max_upload_bytes = max_upload_bytes
-        self.jobs = JobManager()
+        self.jobs = JobManager(record=self._record_job)
         self._states: dict[str, SessionState] = {}
         self._lock = threading.Lock()
         self._revision_listeners: list[Callable[[str], None]] = []
         self._camera_path_listeners: list[Callable[[str], None]] = []
+        self.checks: dict[str, SessionCheck] = {}
+        self.check_sessions()
+
+    def check_sessions(self) -> dict[str, SessionCheck]:
+        """Check (and repair) every session once, at start: what was repaired is logged and listed
+        with the session; a session that cannot open says why, and the others open as usual."""
+        for session_id in self.session_ids():
+            check = check_session(self.sessions_dir / session_id)
+            self.checks[session_id] = check
+            for note in check.repaired:
+                log.warning("session %s repaired: %s", session_id, note)
+            if check.error:
+                log.error("session %s cannot open: %s", session_id, check.error)
+        return self.checks
+
+    def _record_job(self, job: Job, event: str) -> None:
+        """Journal a job's start and end, so one cut short by a crash is found and shown after a restart."""
+        try:
+            session = self.state(job.session_id).session
+            parameters: dict[str, Any] = {"id": job.id, "event": event, "kind": job.kind, "status": job.status}
+            if event == "started":
+                parameters["revision"] = session.journal.head
+            elif job.message:
+                parameters["message"] = job.message[:500]
+            session.journal.append(job.author, JOB_ENTRY, parameters)
+        except Exception:  # the job itself must not fail because its record could not be written
+            log.exception("could not journal job %s (%s)", job.id, event)
+
+    def recorded_job(self, job_id: str) -> dict[str, Any] | None:
+        """A job no longer (or never) in memory, as the journals last recorded it: an interrupted job
+        answers with the revision it started from instead of vanishing after a restart."""
+        for session_id in self.session_ids():
+            try:
+                entries = self.state(session_id).session.journal.entries()
+            except Exception:
+                continue
+            record = job_records(entries).get(job_id)
+            if record is not None:
+                status = "interrupted" if record.get("event") == "started" else record.get("status", "interrupted")
+                return {**record, "id": job_id, "session_id": session_id, "status": status, "from_journal": True}
+        return None
 
     # -------------------------------------------------------------- sessions
 
@@ -87,9 +126,16 @@ class Workbench:
         self._revision_listeners.append(listener)
 
     def _changed(self, session_id: str) -> None:
-        self.state(session_id).apply_head()
-        for listener in self._revision_listeners:
-            listener(session_id)
+        """Tell everyone the head moved. The change is already in the journal: a view that fails to
+        follow is logged, never turned into an error answer (a client told "409" after its redo was
+        applied would retry and apply it twice)."""
+        steps: list[Callable[[], None]] = [self.state(session_id).apply_head]
+        steps += [partial(listener, session_id) for listener in self._revision_listeners]
+        for step in steps:
+            try:
+                step()
+            except Exception:
+                log.exception("after a change of session %s, a view failed to follow", session_id)
 
     def on_camera_path(self, listener: Callable[[str], None]) -> None:
         """``listener(session_id)`` runs after a session's saved camera path changed (from any browser or REST)."""
@@ -109,6 +155,9 @@ class Workbench:
     def state(self, session_id: str) -> SessionState:
         if not _ID.match(session_id) or not (self.sessions_dir / session_id / SESSION_FILE).is_file():
             raise UnknownSessionError(session_id)
+        check = self.checks.get(session_id)
+        if check is not None and check.error:
+            raise SessionError(self.sessions_dir / session_id, f"cannot be opened: {check.error}")
         with self._lock:
             if session_id not in self._states:
                 self._states[session_id] = SessionState(Session.open(self.sessions_dir / session_id))
@@ -125,23 +174,28 @@ class Workbench:
                 "revision": session.revision,
                 "format": session.config.format_name,
                 "error": None,
+                "repaired": self._repaired(session_id),
             }
         except Slam6dError as exc:
-            return {"id": session_id, "name": session_id, "scans": 0, "revision": 0, "format": "", "error": str(exc)}
+            return {
+                "id": session_id,
+                "name": session_id,
+                "scans": 0,
+                "revision": 0,
+                "format": "",
+                "error": str(exc),
+                "repaired": self._repaired(session_id),
+            }
 
-    def _new_folder(self, name: str) -> Path:
-        base = slugify(name)
-        candidate, n = base, 1
-        while (self.sessions_dir / candidate).exists():
-            n += 1
-            candidate = f"{base}-{n}"
-        return self.sessions_dir / candidate
+    def _repaired(self, session_id: str) -> list[str]:
+        check = self.checks.get(session_id)
+        return list(check.repaired) if check is not None else []
 
     def create_from_folder(
         self, name: str, source: Path, format_name: str | None = None, frame: str | None = None
     ) -> Session:
         source = self.data_root.check(source)  # before anything looks at the path
-        folder = self._new_folder(name)
+        folder = reserve_session_folder(self.sessions_dir, name)
         try:
             session = Session.create(folder, name, source, format_name, frame)
         except BaseException:
@@ -150,26 +204,32 @@ class Workbench:
         return session
 
     def create_from_upload(
-        self, name: str, files: Iterable[tuple[str, bytes]], format_name: str | None = None, frame: str | None = None
+        self,
+        name: str,
+        files: Iterable[tuple[str, BinaryIO]],
+        format_name: str | None = None,
+        frame: str | None = None,
     ) -> Session:
-        """Store uploaded scan files (or a .zip of them) in a new session and prove they all parse.
+        """Store uploaded scan files (or .zips of them) in a new session and prove they all parse.
 
-        On any problem the half-made folder is removed: a refused upload leaves nothing behind.
+        Files are copied from their (spooled) streams in chunks and zips unpacked by
+        :func:`slam6d.archive.extract_zip` (sizes, ratio, names, links, nested archives checked while
+        streaming); the whole upload shares one size budget. Called off the event loop: parsing every
+        scan takes seconds. On any problem the half-made folder is removed: a refused upload leaves
+        nothing behind.
         """
-        folder = self._new_folder(name)
+        folder = reserve_session_folder(self.sessions_dir, name)
         scans = folder / "scans"
         try:
-            scans.mkdir(parents=True)
-            total = 0
-            for filename, content in files:
-                for member, data in _expand(filename, content, self.max_upload_bytes):
-                    total += len(data)
-                    if total > self.max_upload_bytes:
-                        raise UploadError(f"upload exceeds the limit of {self.max_upload_bytes // 2**20} MiB", 413)
-                    if (scans / member).exists():
-                        raise UploadError(f"file '{member}' appears twice in the upload")
-                    (scans / member).write_bytes(data)
-            if total == 0:
+            scans.mkdir()
+            budget = self.max_upload_bytes
+            for filename, stream in files:
+                base = PurePosixPath(filename.replace("\\", "/")).name
+                if base.lower().endswith(".zip"):
+                    budget -= self._unzip_upload(base, stream, folder, scans, budget)
+                else:
+                    budget -= _copy_upload(_upload_name(base, filename), stream, scans, budget, self.max_upload_bytes)
+            if not any(scans.iterdir()):
                 raise UploadError("the upload contains no files")
             session = Session.create(folder, name, "scans", format_name, frame)
             session.load_sequence()  # parses every scan: a bad file is reported now, with its name and line
@@ -177,6 +237,21 @@ class Workbench:
             shutil.rmtree(folder, ignore_errors=True)
             raise
         return session
+
+    def _unzip_upload(self, base: str, stream: BinaryIO, folder: Path, scans: Path, budget: int) -> int:
+        """Unpack one uploaded zip into ``scans`` (folders flattened); the bytes it took from ``budget``."""
+        staging = folder / f".unzip-{len(list(folder.iterdir()))}"
+        limits = ArchiveLimits(max_total_bytes=max(budget, 0))
+        written = extract_zip(stream, staging, limits, rename=_flatten, label=base)
+        used = 0
+        for member in written:
+            target = scans / member.name
+            if target.exists():
+                raise UploadError(f"file '{member.name}' appears twice in the upload")
+            used += (staging / member).stat().st_size
+            (staging / member).replace(target)
+        shutil.rmtree(staging, ignore_errors=True)
+        return used
 
     # -------------------------------------------------------------- edits
 
@@ -240,29 +315,35 @@ class Workbench:
         return [np.asarray(p) for p in self.state(session_id).session.poses()]
 
 
-def _expand(filename: str, content: bytes, limit: int) -> list[tuple[str, bytes]]:
-    """Validate one uploaded file name; unpack a zip (flattening folders, refusing traversal)."""
-    base = PurePosixPath(filename.replace("\\", "/")).name
-    if base.lower().endswith(".zip"):
-        try:
-            archive = zipfile.ZipFile(io.BytesIO(content))
-        except zipfile.BadZipFile:
-            raise UploadError(f"'{base}' is not a valid zip archive") from None
-        members = [i for i in archive.infolist() if not i.is_dir()]
-        if sum(i.file_size for i in members) > limit:
-            raise UploadError(f"'{base}' unpacks to more than the limit of {limit // 2**20} MiB", 413)
-        out = []
-        for info in members:
-            parts = PurePosixPath(info.filename).parts
-            if info.filename.startswith("/") or ".." in parts:
-                raise UploadError(f"'{base}' contains an unsafe path '{info.filename}'")
-            if parts[-1].startswith(".") or "__MACOSX" in parts:
-                continue
-            out.extend(_expand(parts[-1], archive.read(info), limit))
-        return out
+def _upload_name(base: str, filename: str) -> str:
     if not _UPLOAD_NAME.match(base):
-        raise UploadError(f"file name '{filename}' is not allowed (letters, digits, '.', '_', '-')")
-    return [(base, content)]
+        raise UploadError(
+            "file name not allowed: an uploaded file name may hold letters, digits, '.', '_' and '-' only"
+        )
+    return base
+
+
+def _flatten(member: PurePosixPath) -> PurePosixPath | None:
+    """Where a zip entry of an upload goes: its base name (folders flattened); hidden files and macOS
+    resource forks skipped."""
+    if member.name.startswith(".") or "__MACOSX" in member.parts:
+        return None
+    return PurePosixPath(_upload_name(member.name, str(member)))
+
+
+def _copy_upload(name: str, stream: BinaryIO, scans: Path, budget: int, limit: int) -> int:
+    """Copy one uploaded file into ``scans`` in chunks, refusing (413) once ``budget`` is spent."""
+    target = scans / name
+    if target.exists():
+        raise UploadError(f"file '{name}' appears twice in the upload")
+    copied = 0
+    with open(target, "xb") as sink:
+        while chunk := stream.read(1 << 20):
+            copied += len(chunk)
+            if copied > budget:
+                raise UploadError(f"upload exceeds the limit of {limit // 2**20} MiB", 413)
+            sink.write(chunk)
+    return copied
 
 
 __all__ = ["SessionState", "Workbench"]

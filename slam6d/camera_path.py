@@ -29,8 +29,16 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.interpolate import CubicSpline
 from scipy.spatial.transform import Rotation, RotationSpline
 
-from slam6d.errors import FormatError, Slam6dError
-from slam6d.geometry import Matrix, look_at, make_pose, quaternion_to_rotation, rotation_to_quaternion
+from slam6d.errors import FormatError, InvalidValueError, Slam6dError
+from slam6d.geometry import (
+    Matrix,
+    check_point,
+    check_quaternion,
+    look_at,
+    make_pose,
+    quaternion_to_rotation,
+    rotation_to_quaternion,
+)
 
 PATH_FORMAT = "slam6d-camera-path"
 PATH_VERSION = 1
@@ -46,15 +54,9 @@ class Keyframe:
     fov_deg: float = 60.0
 
     def __post_init__(self) -> None:
-        self.position = np.asarray(self.position, dtype=np.float64).reshape(3)
-        q = np.asarray(self.orientation, dtype=np.float64).reshape(4)
-        norm = float(np.linalg.norm(q))
-        if not np.isfinite(self.position).all() or not np.isfinite(q).all() or norm < 1e-9:
-            raise ValueError("keyframe position and orientation must be finite, the quaternion non-zero")
-        self.orientation = q / norm
-        if not 1.0 <= float(self.fov_deg) < 179.0:
-            raise ValueError(f"keyframe field of view must be within [1, 179) degrees, got {self.fov_deg}")
-        self.fov_deg = float(self.fov_deg)
+        self.position = check_point(self.position, "position")
+        self.orientation = check_quaternion(self.orientation, "orientation_wxyz")
+        self.fov_deg = check_fov(self.fov_deg)
 
     @classmethod
     def from_pose(cls, pose: Matrix, fov_deg: float = 60.0) -> Keyframe:
@@ -210,11 +212,44 @@ class CameraPath:
             "turn_speed_deg": self.turn_speed_deg,
             "look_ahead": self.look_ahead,
             "pitch_deg": self.pitch_deg,
-            "keyframes": [
-                {"position": k.position.tolist(), "orientation_wxyz": k.orientation.tolist(), "fov_deg": k.fov_deg}
-                for k in self.keyframes
-            ],
+            "keyframes": [keyframe_to_dict(k) for k in self.keyframes],
         }
+
+
+def check_fov(value: Any, field: str = "fov_deg") -> float:
+    """A vertical field of view in degrees within [1, 179), or :class:`InvalidValueError` naming ``field``."""
+    if isinstance(value, bool) or not isinstance(value, int | float | np.floating | np.integer):
+        raise InvalidValueError(field, f"must be a number of degrees, got {type(value).__name__}")
+    fov = float(value)
+    if not 1.0 <= fov < 179.0:
+        raise InvalidValueError(field, f"field of view must lie within [1, 179) degrees, got {fov:g}")
+    return fov
+
+
+def keyframe_from_dict(item: Any, field: str = "keyframe") -> Keyframe:
+    """One keyframe of the JSON form (position, orientation_wxyz, fov_deg); errors name ``field``.
+
+    Used for files and for keyframes a client stores in a session alike, so nothing that cannot be
+    rendered (a zero or 1e200 quaternion, a NaN position) is ever kept.
+    """
+    if not isinstance(item, dict):
+        raise InvalidValueError(field, "must be an object with position, orientation_wxyz and fov_deg")
+    for key in ("position", "orientation_wxyz"):
+        if key not in item:
+            raise InvalidValueError(f"{field}.{key}", "is missing")
+    return Keyframe(
+        check_point(item["position"], f"{field}.position"),
+        check_quaternion(item["orientation_wxyz"], f"{field}.orientation_wxyz"),
+        check_fov(item.get("fov_deg", 60.0), f"{field}.fov_deg"),
+    )
+
+
+def keyframe_to_dict(keyframe: Keyframe) -> dict[str, Any]:
+    return {
+        "position": keyframe.position.tolist(),
+        "orientation_wxyz": keyframe.orientation.tolist(),
+        "fov_deg": keyframe.fov_deg,
+    }
 
 
 def _angle_between(q0: NDArray[np.float64], q1: NDArray[np.float64]) -> float:
@@ -237,13 +272,10 @@ def camera_path_from_dict(data: Any, source: Path | str = "camera path") -> Came
     raw = data.get("keyframes")
     if not isinstance(raw, list) or not raw:
         raise FormatError(source, "'keyframes' must be a non-empty list")
-    keyframes = []
-    for i, item in enumerate(raw):
-        try:
-            keyframes.append(Keyframe(item["position"], item["orientation_wxyz"], item.get("fov_deg", 60.0)))
-        except (KeyError, TypeError, ValueError) as exc:
-            detail = f"missing {exc}" if isinstance(exc, KeyError) else str(exc)
-            raise FormatError(source, f"keyframe {i}: {detail}") from None
+    try:
+        keyframes = [keyframe_from_dict(item, f"keyframes[{i}]") for i, item in enumerate(raw)]
+    except InvalidValueError as exc:
+        raise FormatError(source, str(exc)) from None
     try:
         return CameraPath(
             keyframes,

@@ -450,6 +450,40 @@ def relax(
         typer.echo(f"stored as revision {number}")
 
 
+bundle_app = typer.Typer(no_args_is_help=True, help="Hand a whole session (its history) over as one zip.")
+app.add_typer(bundle_app, name="bundle")
+
+
+@bundle_app.command("export")
+def bundle_export(
+    session: Annotated[Path, typer.Argument(help="Session folder (holding session.toml).")],
+    out: Annotated[Path, typer.Argument(help="The zip to write.")],
+    scans: Annotated[bool, typer.Option("--scans", help="Include the scan files themselves.")] = False,
+) -> None:
+    """Write SESSION's bundle: manifest (sha256 per file), session.toml, journal, traces, camera path."""
+    from slam6d.bundle import export_bundle
+
+    summary = export_bundle(session, out, include_scans=scans)
+    included = "with" if summary.scans_included else "without"
+    typer.echo(f"{summary.path}: {summary.files} files, {summary.bytes:,} bytes, {included} scans")
+
+
+@bundle_app.command("import")
+def bundle_import(
+    bundle: Annotated[Path, typer.Argument(help="A bundle written by `slam6d bundle export`.")],
+    sessions_dir: Annotated[Path, typer.Argument(help="Folder of sessions to add the new session to.")],
+) -> None:
+    """Make a new session in SESSIONS_DIR with BUNDLE's history; a bundle that fails a check writes nothing."""
+    from slam6d.bundle import import_bundle
+
+    def reachable(path: Path) -> None:  # a bundle without scans names folders of the machine it came from
+        if not path.exists():
+            err.print(f"[yellow]warning:[/yellow] scan source {path} does not exist here")
+
+    session = import_bundle(bundle, sessions_dir, check_external_source=reachable, author=os.environ.get("USER", ""))
+    typer.echo(f"{session.folder}: session '{session.name}' at revision {session.journal.head}")
+
+
 class _BadOptions(Exception):  # noqa: N818 - a signal, not an error shown to anyone
     """Stops reading scans once the options turned out invalid."""
 

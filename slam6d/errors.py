@@ -51,3 +51,17 @@ class SessionError(Slam6dError):
         self.path = Path(path)
         self.reason = message
         super().__init__(f"{self.path}: {message}")
+
+
+class InvalidValueError(Slam6dError, ValueError):
+    """A value handed to the engine is not acceptable (not rigid, not finite, out of range).
+
+    ``field`` names where it came from (``poses[3]``, ``keyframes[0].orientation_wxyz``) so an API
+    can answer 422 pointing at the right part of a request. It is also a ``ValueError``, so callers
+    that guarded a conversion with ``except ValueError`` keep working.
+    """
+
+    def __init__(self, field: str, message: str) -> None:
+        self.field = field
+        self.reason = message
+        super().__init__(f"{field}: {message}")

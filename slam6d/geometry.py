@@ -13,7 +13,16 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from slam6d.errors import InvalidValueError
+
 Matrix = NDArray[np.float64]
+
+# Bounds of what a pose or a camera may hold. 10,000 km is beyond any map a scanner makes, yet far
+# from where float64 arithmetic (squared distances, spline coefficients) overflows or loses metres.
+MAX_COORDINATE_M = 1e7
+# How far R^T R may stray from I (and det R from +1): rotations written to text files with 6
+# significant digits stray by ~1e-6; a scaled, sheared or garbage matrix by far more.
+RIGID_TOLERANCE = 1e-4
 
 
 def make_pose(rotation: ArrayLike, translation: ArrayLike) -> Matrix:
@@ -247,6 +256,90 @@ def look_at(eye: ArrayLike, target: ArrayLike, up: ArrayLike = (0.0, 0.0, 1.0)) 
     right /= np.linalg.norm(right)
     down = np.cross(forward, right)
     return make_pose(np.stack([right, down, forward], axis=1), eye_v)
+
+
+# ---------------------------------------------------------------- checking values from outside
+
+
+def check_rigid(
+    pose: ArrayLike, field: str = "pose", tolerance: float = RIGID_TOLERANCE, max_coordinate: float = MAX_COORDINATE_M
+) -> Matrix:
+    """``pose`` as a 4x4 float64 matrix, or :class:`InvalidValueError` naming ``field`` and what is wrong.
+
+    A pose is rigid when its rotation is orthonormal with determinant +1 (within ``tolerance``), its
+    bottom row is 0 0 0 1, and every entry is finite with a translation within ``max_coordinate``.
+    Anything else - zero, scaled, sheared, reflected, a garbage bottom row, 1e308 - would be stored
+    and then silently break every consumer (exports write other rotations, solvers raise), so the
+    engine refuses it where it enters instead.
+    """
+    try:
+        matrix = np.array(pose, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InvalidValueError(field, "must be a 4x4 matrix of numbers") from None
+    if matrix.shape != (4, 4):
+        raise InvalidValueError(field, f"must be a 4x4 matrix, got shape {matrix.shape}")
+    if not np.isfinite(matrix).all():
+        raise InvalidValueError(field, "must hold finite numbers only (no NaN or infinity)")
+    if np.abs(matrix[3] - (0.0, 0.0, 0.0, 1.0)).max() > tolerance:
+        raise InvalidValueError(field, f"bottom row must be 0 0 0 1, got {_numbers(matrix[3])}")
+    translation = matrix[:3, 3]
+    if np.abs(translation).max() > max_coordinate:
+        raise InvalidValueError(field, f"translation {_numbers(translation)} is beyond ±{max_coordinate:g} m")
+    rotation = matrix[:3, :3]
+    if np.abs(rotation).max() > 2.0:  # clearly garbage; also keeps RᵀR below overflow
+        raise InvalidValueError(field, "rotation entries must lie within [-1, 1] (a scaled or garbage matrix)")
+    deviation = float(np.abs(rotation.T @ rotation - np.eye(3)).max())
+    if deviation > tolerance:
+        raise InvalidValueError(
+            field, f"rotation is not orthonormal (|RᵀR - I| = {deviation:.2g}; scaled, sheared or not a rotation)"
+        )
+    determinant = float(np.linalg.det(rotation))
+    if abs(determinant - 1.0) > tolerance:
+        raise InvalidValueError(field, f"rotation has determinant {determinant:.3g}, must be +1 (not a reflection)")
+    matrix[3] = (0.0, 0.0, 0.0, 1.0)
+    return matrix
+
+
+def check_quaternion(q: ArrayLike, field: str = "orientation_wxyz", max_component: float = 1e6) -> Matrix:
+    """A unit quaternion (w, x, y, z) from ``q``, normalised, or :class:`InvalidValueError` naming ``field``.
+
+    Any finite, non-zero quaternion of reasonable size is accepted and normalised (clients send
+    rounded or unnormalised ones); zero, non-finite or huge components (1e200 squares to infinity
+    in the next formula that touches it) are refused.
+    """
+    try:
+        quaternion = np.array(q, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InvalidValueError(field, "must be 4 numbers (w, x, y, z)") from None
+    if quaternion.shape != (4,):
+        raise InvalidValueError(field, f"must be 4 numbers (w, x, y, z), got shape {quaternion.shape}")
+    if not np.isfinite(quaternion).all():
+        raise InvalidValueError(field, "must hold finite numbers only")
+    if np.abs(quaternion).max() > max_component:
+        raise InvalidValueError(field, f"components must lie within ±{max_component:g}")
+    norm = float(np.linalg.norm(quaternion))
+    if norm < 1e-6:
+        raise InvalidValueError(field, "is zero (or nearly): it names no rotation")
+    return quaternion / norm
+
+
+def check_point(point: ArrayLike, field: str = "position", max_coordinate: float = MAX_COORDINATE_M) -> Matrix:
+    """A finite 3-vector within ``max_coordinate`` metres, or :class:`InvalidValueError` naming ``field``."""
+    try:
+        vector = np.array(point, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InvalidValueError(field, "must be 3 numbers") from None
+    if vector.shape != (3,):
+        raise InvalidValueError(field, f"must be 3 numbers, got shape {vector.shape}")
+    if not np.isfinite(vector).all():
+        raise InvalidValueError(field, "must hold finite numbers only")
+    if np.abs(vector).max() > max_coordinate:
+        raise InvalidValueError(field, f"{_numbers(vector)} is beyond ±{max_coordinate:g} m")
+    return vector
+
+
+def _numbers(values: NDArray[np.float64]) -> str:
+    return " ".join(f"{float(v):.6g}" for v in values)
 
 
 # ---------------------------------------------------------------- frame conventions

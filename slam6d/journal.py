@@ -31,8 +31,8 @@ from typing import Any
 
 import numpy as np
 
-from slam6d.errors import SessionError
-from slam6d.geometry import Matrix
+from slam6d.errors import InvalidValueError, SessionError
+from slam6d.geometry import Matrix, check_rigid
 from slam6d.trace import to_jsonable
 
 
@@ -151,25 +151,32 @@ class Journal:
 
     def __init__(self, path: Path) -> None:
         self.path = path
-        with self._write() as conn:
-            conn.execute(
-                "CREATE TABLE IF NOT EXISTS entries (id INTEGER PRIMARY KEY AUTOINCREMENT, time TEXT NOT NULL,"
-                " author TEXT NOT NULL, kind TEXT NOT NULL, parameters TEXT NOT NULL, head INTEGER,"
-                " revision INTEGER)"
-            )
-            conn.execute(
-                "CREATE TABLE IF NOT EXISTS revisions (number INTEGER PRIMARY KEY, parent INTEGER,"
-                " entry_id INTEGER NOT NULL, scans INTEGER NOT NULL, poses BLOB NOT NULL, graph TEXT NOT NULL)"
-            )
+        try:
+            with self._write() as conn:
+                conn.execute(
+                    "CREATE TABLE IF NOT EXISTS entries (id INTEGER PRIMARY KEY AUTOINCREMENT, time TEXT NOT NULL,"
+                    " author TEXT NOT NULL, kind TEXT NOT NULL, parameters TEXT NOT NULL, head INTEGER,"
+                    " revision INTEGER)"
+                )
+                conn.execute(
+                    "CREATE TABLE IF NOT EXISTS revisions (number INTEGER PRIMARY KEY, parent INTEGER,"
+                    " entry_id INTEGER NOT NULL, scans INTEGER NOT NULL, poses BLOB NOT NULL, graph TEXT NOT NULL)"
+                )
+        except sqlite3.DatabaseError as exc:  # not a journal, or damaged beyond what SQLite opens
+            raise SessionError(path.parent, f"{path.name} is not a readable journal ({exc})") from None
 
     def _error(self, message: str) -> SessionError:
         return SessionError(self.path.parent, message)
 
     def _stack(self, poses: Sequence[Matrix], kind: str) -> np.ndarray:
-        stack = np.stack([np.asarray(p, dtype=np.float64).reshape(4, 4) for p in poses])
-        if not np.isfinite(stack).all():
-            raise self._error(f"refusing to store non-finite poses ({kind})")
-        return stack
+        """The poses as one array, each checked rigid (:func:`slam6d.geometry.check_rigid`).
+
+        A revision is kept forever, so a pose that is not rigid is refused here with an
+        :class:`InvalidValueError` naming it, and nothing is written.
+        """
+        if not len(poses):
+            raise self._error(f"refusing to store a revision without poses ({kind})")
+        return np.stack([check_rigid(p, f"poses[{i}]") for i, p in enumerate(poses)])
 
     def _connect(self) -> sqlite3.Connection:
         conn = sqlite3.connect(self.path, timeout=30, isolation_level=None)
@@ -231,7 +238,8 @@ class Journal:
         """Store poses for every scan (the first import, a whole run) as a new revision.
 
         Without ``graph`` the new revision keeps the head's annotations. With ``base`` (the revision
-        the poses were computed from) only the scans that differ from it are laid onto the head.
+        the poses were computed from) only the scans that differ from it are laid onto the head. Every
+        pose must be rigid; one that is not refuses the whole revision.
         """
         stack = self._stack(poses, kind)
         if base is None:
@@ -261,7 +269,7 @@ class Journal:
 
         ``scans`` is only needed for the very first revision (there is no head to take the count from).
         """
-        new_poses = {int(k): self._stack([p], kind)[0] for k, p in change.poses.items()}
+        new_poses = {int(k): check_rigid(p, f"poses[{k}]") for k, p in change.poses.items()}
         with self._write() as conn:
             self._check_expected(conn)
             parent = _head_of(conn)
@@ -293,6 +301,27 @@ class Journal:
                 (number, parent, entry.id, len(poses), poses.tobytes(), json.dumps(to_jsonable(graph))),
             )
         return number
+
+    def commit_first(
+        self, poses: Sequence[Matrix], author: str, kind: str, parameters: dict[str, Any] | None = None
+    ) -> int:
+        """Store revision 0 unless a revision exists already; the head either way.
+
+        Two requests that both find a new session without revisions (the first view and the first
+        poses, racing) would otherwise both store an "import"; the check and the insert share one
+        write transaction, so exactly one does.
+        """
+        stack = self._stack(poses, kind)
+        with self._write() as conn:
+            head = _head_of(conn)
+            if head is not None:
+                return head
+            entry = _insert_entry(conn, author, kind, parameters or {}, 0, 0)
+            conn.execute(
+                "INSERT INTO revisions (number, parent, entry_id, scans, poses, graph) VALUES (0,NULL,?,?,?,?)",
+                (entry.id, len(stack), stack.tobytes(), json.dumps({})),
+            )
+        return 0
 
     def undo(self, author: str, revision: int | None = None) -> int:
         """Go back to the parent of the current revision (an entry of its own; nothing is deleted).
@@ -454,3 +483,61 @@ def _redo_stack(entries: list[JournalEntry]) -> list[int]:
         elif e.revision is not None:
             stack.clear()
     return stack
+
+
+# ------------------------------------------------------------------ checking a journal file
+
+
+def check_journal_file(path: Path) -> list[str]:
+    """What is wrong with a journal file: empty when it is sound. Nothing is written to it.
+
+    Checked: SQLite's own ``PRAGMA integrity_check``; the two tables present; no triggers or views
+    (the journal has none, and a file from elsewhere must not run code on our inserts); every
+    revision's pose blob the size its scan count says, every pose rigid; every entry's parameters
+    JSON. Used when a server starts (a session that fails is reported, not opened) and before a
+    bundle's journal is taken in.
+    """
+    if not path.is_file():
+        return [f"{path.name}: missing"]
+    problems: list[str] = []
+    try:
+        # Not opened read-only: a journal left by a killed writer has a WAL to recover first.
+        with closing(sqlite3.connect(path, timeout=30)) as conn:
+            conn.execute("PRAGMA trusted_schema=OFF")
+            result = [row[0] for row in conn.execute("PRAGMA integrity_check")]
+            if result != ["ok"]:
+                return [f"{path.name}: integrity check failed: {'; '.join(map(str, result[:5]))}"]
+            objects = {(kind, name) for kind, name in conn.execute("SELECT type, name FROM sqlite_master")}
+            for table in ("entries", "revisions"):
+                if ("table", table) not in objects:
+                    problems.append(f"{path.name}: table '{table}' missing")
+            foreign = sorted(name for kind, name in objects if kind in ("trigger", "view"))
+            if foreign:
+                problems.append(f"{path.name}: holds triggers or views ({', '.join(foreign[:5])}); a journal has none")
+            if problems:
+                return problems
+            for number, scans, blob in conn.execute("SELECT number, scans, poses FROM revisions ORDER BY number"):
+                problems.extend(_revision_problems(number, scans, blob))
+            for entry_id, parameters in conn.execute("SELECT id, parameters FROM entries ORDER BY id"):
+                try:
+                    json.loads(parameters)
+                except (TypeError, ValueError):
+                    problems.append(f"entry {entry_id}: parameters are not JSON")
+    except sqlite3.DatabaseError as exc:
+        return [f"{path.name}: not a readable SQLite journal ({exc})"]
+    return problems
+
+
+def _revision_problems(number: Any, scans: Any, blob: Any) -> list[str]:
+    if not isinstance(number, int) or not isinstance(scans, int) or not isinstance(blob, bytes):
+        return [f"revision {number}: malformed row"]
+    if scans < 1 or len(blob) != scans * 16 * 8:
+        return [f"revision {number}: pose data of {len(blob)} bytes does not hold {scans} poses"]
+    stack = np.frombuffer(blob, dtype=np.float64).reshape(scans, 4, 4)
+    problems = []
+    for index, pose in enumerate(stack):
+        try:
+            check_rigid(pose, f"revision {number} poses[{index}]")
+        except InvalidValueError as exc:
+            problems.append(str(exc))
+    return problems

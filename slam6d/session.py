@@ -26,9 +26,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from slam6d.errors import FormatError, SessionError
+from slam6d.camera_path import Keyframe, keyframe_from_dict, keyframe_to_dict
+from slam6d.errors import FormatError, InvalidValueError, SessionError
 from slam6d.geometry import CONVENTIONS, FrameConvention, Matrix
 from slam6d.io.registry import ReadOptions, list_scan_files, resolve_format
+from slam6d.io.source import check_regular_file
 from slam6d.journal import Journal, Revision, now
 from slam6d.scan import ScanSequence
 from slam6d.scan_cache import ScanCache
@@ -133,6 +135,8 @@ class Session:
             resolved = src if src.is_absolute() else folder / src
             if not resolved.exists():
                 raise SessionError(folder, f"scan source {src} does not exist")
+            if not resolved.is_dir():
+                check_regular_file(resolved)  # a device or FIFO named as a scan is refused now, unread
             fmt = resolve_format(resolved, format_name)
             if resolved.is_dir():
                 list_scan_files(resolved, fmt)
@@ -202,7 +206,7 @@ class Session:
         )
         sequence = cache.load(progress)
         if self.journal.head is None:
-            self.journal.commit(sequence.poses(), "system", "import", {"scans": len(sequence)})
+            self.journal.commit_first(sequence.poses(), "system", "import", {"scans": len(sequence)})
         poses = self.poses()
         if len(poses) != len(sequence):
             raise SessionError(
@@ -242,23 +246,61 @@ class Session:
     # -------------------------------------------------------------- render keyframes
 
     def camera_path(self) -> list[dict[str, Any]]:
-        """Render keyframes, as last saved: dicts as in a camera-path file (position, orientation_wxyz, fov_deg)."""
-        latest = self.journal.latest("camera_path")
-        return [] if latest is None else list(latest.parameters.get("keyframes", []))
+        """Render keyframes, as last saved: dicts as in a camera-path file (position, orientation_wxyz, fov_deg).
 
-    def set_camera_path(self, keyframes: list[dict[str, Any]], author: str) -> None:
-        """Replace all keyframes."""
-        self.change_camera_path(lambda _old: keyframes, author)
+        Keyframes that cannot be rendered (stored by an older version that did not check them) are
+        left out, so a poisoned entry never wedges the path: :meth:`camera_path_problems` names them.
+        """
+        return self._saved_camera_path()[0]
+
+    def camera_path_problems(self) -> list[str]:
+        """Why each keyframe of the last saved path that :meth:`camera_path` leaves out is unusable."""
+        return self._saved_camera_path()[1]
+
+    def _saved_camera_path(self) -> tuple[list[dict[str, Any]], list[str]]:
+        latest = self.journal.latest("camera_path")
+        return ([], []) if latest is None else _usable_keyframes(latest.parameters)
+
+    def set_camera_path(self, keyframes: Sequence[dict[str, Any] | Keyframe], author: str) -> list[dict[str, Any]]:
+        """Replace the render keyframes (an empty list clears them); returns them as stored, normalised."""
+        return self.change_camera_path(lambda _old: list(keyframes), author)
 
     def change_camera_path(
-        self, change: Callable[[list[dict[str, Any]]], list[dict[str, Any]]], author: str
+        self, change: Callable[[list[dict[str, Any]]], Sequence[dict[str, Any] | Keyframe]], author: str
     ) -> list[dict[str, Any]]:
         """Apply ``change`` to the keyframes as stored at the moment of writing (two keyframes added at
-        once are both kept); returns the new keyframes. An exception from ``change`` stores nothing."""
-        entry = self.journal.update_document(
-            author, "camera_path", lambda doc: {"keyframes": change(list((doc or {}).get("keyframes", [])))}
-        )
+        once are both kept); returns the new keyframes.
+
+        Every keyframe of the result is checked first (finite, bounded position; non-zero quaternion,
+        normalised; field of view in range): one bad keyframe refuses the whole change, and an
+        exception from ``change`` stores nothing either.
+        """
+
+        def checked(doc: dict[str, Any] | None) -> dict[str, Any]:
+            current = [] if doc is None else _usable_keyframes(doc)[0]
+            return {
+                "keyframes": [
+                    keyframe_to_dict(k if isinstance(k, Keyframe) else keyframe_from_dict(k, f"keyframes[{i}]"))
+                    for i, k in enumerate(change(current))
+                ]
+            }
+
+        entry = self.journal.update_document(author, "camera_path", checked)
         return list(entry.parameters["keyframes"])
+
+
+def _usable_keyframes(document: dict[str, Any]) -> tuple[list[dict[str, Any]], list[str]]:
+    """The keyframes of a stored camera-path document that can be rendered, and why the others cannot."""
+    raw = document.get("keyframes", [])
+    items = raw if isinstance(raw, list) else []
+    kept: list[dict[str, Any]] = []
+    problems: list[str] = [] if isinstance(raw, list) else ["keyframes: not a list"]
+    for i, item in enumerate(items):
+        try:
+            kept.append(keyframe_to_dict(keyframe_from_dict(item, f"keyframes[{i}]")))
+        except InvalidValueError as exc:
+            problems.append(str(exc))
+    return kept, problems
 
 
 # ------------------------------------------------------------------ session.toml
@@ -316,6 +358,29 @@ def write_config(folder: Path, config: SessionConfig) -> None:
     tmp = path.with_suffix(".toml.tmp")
     tmp.write_text(_dump_toml(data))
     tmp.replace(path)
+
+
+def slugify(name: str) -> str:
+    """A folder name for a session called ``name``: letters, digits, '.', '_', '-' only."""
+    slug = re.sub(r"[^A-Za-z0-9._-]+", "-", name).strip("-._")[:60]
+    return slug or "session"
+
+
+def reserve_session_folder(root: Path, name: str) -> Path:
+    """Create (empty) and return a new folder for a session called ``name`` inside ``root``.
+
+    ``name``, then ``name-2``, ``name-3``...: the folder is made with an exclusive ``mkdir``, so two
+    sessions created at once never share one.
+    """
+    base, n = slugify(name), 1
+    root.mkdir(parents=True, exist_ok=True)
+    while True:
+        candidate = root / (base if n == 1 else f"{base}-{n}")
+        try:
+            candidate.mkdir()
+            return candidate
+        except FileExistsError:
+            n += 1
 
 
 def list_sessions(root: Path | str) -> list[Session]:

@@ -43,7 +43,17 @@ def kitti(text: str) -> list[np.ndarray]:
 
 def test_list_and_details(client):
     listed = client.get("/api/sessions").json()
-    assert listed == [{"id": "corridor", "name": "Corridor", "scans": 3, "revision": 0, "format": "uos", "error": None}]
+    assert listed == [
+        {
+            "id": "corridor",
+            "name": "Corridor",
+            "scans": 3,
+            "revision": 0,
+            "format": "uos",
+            "error": None,
+            "repaired": [],
+        }
+    ]
     details = client.get("/api/sessions/corridor").json()
     assert details["scan_files"] == ["scan000.3d", "scan001.3d", "scan002.3d"]
     assert details["config"]["frame"] == "uos" and details["config"]["metres_per_unit"] == 0.01

@@ -215,7 +215,7 @@ def test_ply_ascii_non_number_names_line(tmp_path: Path) -> None:
     header_lines = lines.index("end_header") + 1
     lines[header_lines + 2] = "0.5 oops 1.0"
     path.write_text("\n".join(lines) + "\n")
-    _assert_format_error(path, line=header_lines + 3, match="'oops' is not a number")
+    _assert_format_error(path, line=header_lines + 3, match="field 2 is not a number")
 
 
 def test_ply_ascii_truncated_names_line(tmp_path: Path) -> None:
@@ -265,7 +265,7 @@ def test_pcd_ascii_non_number_names_line(tmp_path: Path) -> None:
     lines = path.read_text().splitlines()
     lines[-2] = "1 2 x3"
     path.write_text("\n".join(lines) + "\n")
-    _assert_format_error(path, line=len(lines) - 1, match="'x3' is not a number")
+    _assert_format_error(path, line=len(lines) - 1, match="field 3 is not a number")
 
 
 def test_pcd_ascii_missing_rows(tmp_path: Path) -> None:
@@ -340,7 +340,7 @@ def test_pcd_viewpoint_is_the_pose(tmp_path: Path) -> None:
 
 def test_xyz_non_number_names_line(tmp_path: Path) -> None:
     path = _text(tmp_path / "bad.xyz", "# header comment\n1 2 3\n4 5 6\n7 8 nine\n")
-    _assert_format_error(path, line=4, match="'nine' is not a number")
+    _assert_format_error(path, line=4, match="field 3 is not a number")
 
 
 def test_xyz_ragged_rows_name_line(tmp_path: Path) -> None:
@@ -364,8 +364,19 @@ def test_las_broken(tmp_path: Path, suffix: str) -> None:
     path = tmp_path / f"cut{suffix}"
     write_las(path, POINTS, intensity=INTENSITY)
     path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
-    _assert_format_error(path, match="cannot read as LAS/LAZ")
-    _assert_format_error(_text(tmp_path / f"junk{suffix}", "not a las file at all"), match="cannot read as LAS/LAZ")
+    with pytest.raises(FormatError, match=r"truncated or damaged|cannot read as LAS/LAZ"):
+        read_scan(path)
+    _assert_format_error(_text(tmp_path / f"junk{suffix}", "not a las file at all"), match="not a LAS/LAZ file")
+
+
+@pytest.mark.parametrize("suffix", [".las", ".laz"])
+def test_las_header_claiming_a_trillion_points_is_refused_before_allocating(tmp_path: Path, suffix: str) -> None:
+    path = tmp_path / f"huge{suffix}"
+    write_las(path, POINTS, intensity=INTENSITY)
+    raw = bytearray(path.read_bytes())
+    raw[107:111] = (2**32 - 1).to_bytes(4, "little")  # legacy point count
+    path.write_bytes(bytes(raw))
+    _assert_format_error(path, match="more than the file's")
 
 
 def test_e57_broken(tmp_path: Path) -> None:
@@ -401,7 +412,7 @@ def test_vtk_ascii_non_number_names_line(tmp_path: Path) -> None:
         tmp_path / "bad.vtk",
         "# vtk DataFile Version 3.0\nt\nASCII\nDATASET POLYDATA\nPOINTS 3 float\n1 2 3 4 5\n6 7 8\nnine\n",
     )
-    _assert_format_error(path, line=8, match="'nine' is not a number")
+    _assert_format_error(path, line=8, match="field 1 is not a number")
 
 
 def test_vtk_wrapped_coordinates(tmp_path: Path) -> None:
@@ -437,7 +448,7 @@ def test_vtk_binary_truncated(tmp_path: Path) -> None:
 
 def test_csv_non_number_names_line(tmp_path: Path) -> None:
     path = _text(tmp_path / "bad.csv", "x,y,z,nx,ny,nz\n1,2,3,0,0,1\n1,2,3,0,0,1\n1 , 2 , ?, 0,0,1\n")
-    _assert_format_error(path, line=4, match="'?' is not a number")
+    _assert_format_error(path, line=4, match="field 3 is not a number")
 
 
 def test_csv_header_and_whitespace_variants(tmp_path: Path) -> None:

@@ -67,7 +67,7 @@ def test_read_poses_file_accepts_kitti_tum_and_4x4(tmp_path: Path) -> None:
 @pytest.mark.parametrize(
     ("text", "line", "match"),
     [
-        ("1 0 0 0 0 1 0 0 0 0 1 0\n1 0 0 0 0 1 0 0 0 0 1 x\n", 2, "'x' is not a number"),
+        ("1 0 0 0 0 1 0 0 0 0 1 0\n1 0 0 0 0 1 0 0 0 0 1 x\n", 2, "field 12 is not a number"),
         ("1 0 0 0 0 1 0 0 0 0 1 0\n\n1 0 0 0 0 1 0 0 0 0 1\n", 3, "expected 12 numbers"),
         ("1 0 0 0 0 1 0 0 0 0 1 0\n# note\n2 0 0 0 0 1 0 0 0 0 1 0\n", 3, "not a rotation"),
         ("1 0 0 0 0 1 0 0 0 0 1 0\n1 0 0 nan 0 1 0 0 0 0 1 0\n", 2, "NaN"),

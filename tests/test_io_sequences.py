@@ -175,5 +175,5 @@ def test_uos_folder_reads_in_file_order_with_progress_and_stops_at_the_first_bad
         np.testing.assert_allclose(scan.pose[:3, 3], UOS.pose_to_canonical(make_pose(np.eye(3), [k, 0.0, 0.0]))[:3, 3])
     (tmp_path / "scan005.3d").write_text("1 2 3\n4 five 6\n")
     (tmp_path / "scan009.3d").write_text("1 2\n")
-    with pytest.raises(FormatError, match=r"scan005\.3d:2: .five. is not a number"):
+    with pytest.raises(FormatError, match=r"scan005\.3d:2: field \d+ is not a number"):
         read_sequence(tmp_path, "uos")

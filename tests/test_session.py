@@ -8,7 +8,7 @@ import threading
 import numpy as np
 import pytest
 
-from slam6d.errors import FormatError, SessionError
+from slam6d.errors import FormatError, InvalidValueError, SessionError
 from slam6d.session import JOURNAL_FILE, SESSION_FILE, Session, list_sessions
 from tests.session_fixtures import true_poses, write_corridor_scans
 
@@ -108,7 +108,7 @@ def test_unknown_revision_and_non_finite_poses_are_refused(session):
         session.poses(rev=5)
     bad = session.poses()
     bad[0][0, 3] = np.nan
-    with pytest.raises(SessionError, match="non-finite"):
+    with pytest.raises(InvalidValueError, match=r"poses\[0\]: must hold finite numbers"):
         session.journal.commit(bad, "ana", "edit")
     assert session.journal.revisions() == [0]
 
@@ -146,7 +146,10 @@ def test_concurrent_commits_from_two_handles_serialise(session, tmp_path):
 
 def test_camera_path_round_trip_and_engine_parameters(session, tmp_path):
     assert session.camera_path() == []
-    keys = [{"position": [0, 0, 10], "look_at": [5, 0, 0], "time": 0.0}, {"position": [9, 1, 3], "time": 2.5}]
+    keys = [
+        {"position": [0.0, 0.0, 10.0], "orientation_wxyz": [1.0, 0.0, 0.0, 0.0], "fov_deg": 60.0},
+        {"position": [9.0, 1.0, 3.0], "orientation_wxyz": [0.0, 1.0, 0.0, 0.0], "fov_deg": 45.0},
+    ]
     session.set_camera_path(keys, "ana")
     session.update_engine({"max_iterations": 40}, "ana")
     reopened = Session.open(tmp_path / "s")

@@ -4,6 +4,7 @@
 module              resource
 ==================  =========================================================
 ``sessions``        sessions: list, create, upload, details, journal, undo/redo
+``bundles``         a session's whole history as a zip, and importing one
 ``exports``         poses per revision, pose and map downloads
 ``jobs``            background jobs: start registration/reload, poll, cancel
 ``loops``           loop hypotheses: detect, accept, reject; loop closing
@@ -25,10 +26,23 @@ from __future__ import annotations
 
 from fastapi import APIRouter
 
-from app.routes import camera_path, comments, edges, exports, guesses, jobs, loops, relaxation, sessions, traces
+from app.routes import (
+    bundles,
+    camera_path,
+    comments,
+    edges,
+    exports,
+    guesses,
+    jobs,
+    loops,
+    relaxation,
+    sessions,
+    traces,
+)
 
 API_ROUTERS: tuple[APIRouter, ...] = (
     sessions.router,
+    bundles.router,
     exports.router,
     jobs.router,
     loops.router,

@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 from fastapi import APIRouter
 from fastapi.responses import FileResponse
-from pydantic import BaseModel, Field
+from pydantic import Field
 
 from app.errors import EditError, WorkbenchError
 from app.fly_through import (
@@ -25,18 +25,19 @@ from app.fly_through import (
     start_render,
 )
 from app.routes.dependencies import REQUIRE_SESSION, Author, SessionDep, WorkbenchDep
+from app.validation import MAX_INDEX, IndexPath, Point, Quaternion, RequestBody
 from slam6d.camera_path import Keyframe
 from slam6d.session import Session
 
 router = APIRouter(prefix="/api/sessions/{session_id}", tags=["fly-through"], dependencies=[REQUIRE_SESSION])
 
 
-class KeyframeBody(BaseModel):
-    position: list[float] = Field(min_length=3, max_length=3)
-    orientation_wxyz: list[float] | None = Field(None, min_length=4, max_length=4)
-    look_at: list[float] | None = Field(None, min_length=3, max_length=3, description="instead of an orientation")
-    fov_deg: float = 60.0
-    index: int | None = Field(None, description="insert before this keyframe (default: append)")
+class KeyframeBody(RequestBody):
+    position: Point
+    orientation_wxyz: Quaternion | None = None
+    look_at: Point | None = Field(None, description="instead of an orientation")
+    fov_deg: float = Field(60.0, ge=1.0, lt=179.0)
+    index: int | None = Field(None, ge=0, le=MAX_INDEX, description="insert before this keyframe (default: append)")
 
     def keyframe(self) -> Keyframe:
         if (self.orientation_wxyz is None) == (self.look_at is None):
@@ -46,12 +47,12 @@ class KeyframeBody(BaseModel):
         return Keyframe(np.asarray(self.position, float), np.asarray(self.orientation_wxyz, float), self.fov_deg)
 
 
-class KeyframeList(BaseModel):
-    keyframes: list[KeyframeBody]
+class KeyframeList(RequestBody):
+    keyframes: list[KeyframeBody] = Field(max_length=10_000)
 
 
-class MoveBody(BaseModel):
-    to: int = Field(ge=0)
+class MoveBody(RequestBody):
+    to: int = Field(ge=0, le=MAX_INDEX)
 
 
 def _path_response(session: Session) -> dict[str, Any]:
@@ -128,7 +129,7 @@ def add_keyframe(
 @router.post("/camera-path/keyframes/{index}/move")
 def move_keyframe(
     session_id: str,
-    index: int,
+    index: IndexPath,
     body: MoveBody,
     workbench: WorkbenchDep,
     author: Author = "anonymous",
@@ -143,7 +144,7 @@ def move_keyframe(
 
 @router.delete("/camera-path/keyframes/{index}")
 def delete_keyframe(
-    session_id: str, index: int, workbench: WorkbenchDep, author: Author = "anonymous"
+    session_id: str, index: IndexPath, workbench: WorkbenchDep, author: Author = "anonymous"
 ) -> dict[str, Any]:
     return _edit(workbench, session_id, lambda keyframes: keyframes.pop(_at(keyframes, index)), author)
 

@@ -9,21 +9,22 @@ from __future__ import annotations
 from typing import Any
 
 from fastapi import APIRouter
-from pydantic import BaseModel, Field
+from pydantic import Field
 
 from app.routes.dependencies import REQUIRE_SESSION, Author, EditorDep
+from app.validation import Index, IndexPath, RequestBody, RigidPose
 
 router = APIRouter(prefix="/api/sessions/{session_id}", tags=["edges"], dependencies=[REQUIRE_SESSION])
 
 
-class EdgeRequest(BaseModel):
-    i: int = Field(ge=0)
-    j: int = Field(ge=0)
+class EdgeRequest(RequestBody):
+    i: Index
+    j: Index
     force: bool = Field(False, description="store the edge even when ICP does not confirm the match")
 
 
-class PoseRequest(BaseModel):
-    pose: list[list[float]] = Field(description="4x4 world_from_scan, canonical frame (metres, z up)")
+class PoseRequest(RequestBody):
+    pose: RigidPose = Field(description="4x4 world_from_scan, canonical frame (metres, z up)")
     refine: bool = Field(False, description="run ICP from this pose against the scan's graph neighbours")
 
 
@@ -40,14 +41,14 @@ def add_edge(session_id: str, body: EdgeRequest, editor: EditorDep, author: Auth
 
 
 @router.delete("/edges/{k}")
-def delete_edge(session_id: str, k: int, editor: EditorDep, author: Author = "anonymous") -> dict[str, Any]:
+def delete_edge(session_id: str, k: IndexPath, editor: EditorDep, author: Author = "anonymous") -> dict[str, Any]:
     """Edge ``k`` leaves the graph (a new revision)."""
     return editor.edges.delete(session_id, k, author)
 
 
 @router.post("/scans/{k}/pose")
 def move_scan(
-    session_id: str, k: int, body: PoseRequest, editor: EditorDep, author: Author = "anonymous"
+    session_id: str, k: IndexPath, body: PoseRequest, editor: EditorDep, author: Author = "anonymous"
 ) -> dict[str, Any]:
     """Place a scan by hand (optionally ICP from there); answers the residuals before/after and any warning."""
     return editor.edges.move_scan(session_id, k, body.pose, author, body.refine)  # type: ignore[arg-type]

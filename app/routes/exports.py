@@ -10,13 +10,14 @@ from fastapi.responses import PlainTextResponse, Response
 from app import exports
 from app.errors import WorkbenchError
 from app.routes.dependencies import EditorDep, SessionDep
+from app.validation import RevisionQuery
 from app.workbench import SessionState
 from slam6d.errors import SessionError
 from slam6d.geometry import Matrix
 from slam6d.journal import Revision
 
 router = APIRouter(prefix="/api/sessions/{session_id}", tags=["exports"])
-RevisionNumber = Annotated[int | None, Query(ge=0)]
+RevisionNumber = RevisionQuery
 Frame = Annotated[str, Query(pattern="^(canonical|native)$")]
 
 

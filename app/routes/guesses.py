@@ -5,27 +5,28 @@ from __future__ import annotations
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Query
-from pydantic import BaseModel, Field
+from pydantic import Field
 
 from app.routes.dependencies import REQUIRE_SESSION, Author, EditorDep
+from app.validation import MAX_INDEX, Index, RequestBody
 
 router = APIRouter(prefix="/api/sessions/{session_id}", tags=["guesses"], dependencies=[REQUIRE_SESSION])
 
 
-class CandidateRequest(BaseModel):
-    data: int = Field(ge=0)
-    model: int | None = Field(None, ge=0)
-    candidate: int = Field(0, ge=0, description="rank in the candidate list (0 = the search's winner)")
-    level: int = -1
+class CandidateRequest(RequestBody):
+    data: Index
+    model: Index | None = None
+    candidate: int = Field(0, ge=0, le=MAX_INDEX, description="rank in the candidate list (0 = the search's winner)")
+    level: int = Field(-1, ge=-1, le=64)
 
 
 @router.get("/guess")
 def guess(
     session_id: str,
     editor: EditorDep,
-    data: Annotated[int, Query(ge=0)],
-    model: Annotated[int | None, Query(ge=0)] = None,
-    level: int = -1,
+    data: Annotated[int, Query(ge=0, le=MAX_INDEX)],
+    model: Annotated[int | None, Query(ge=0, le=MAX_INDEX)] = None,
+    level: Annotated[int, Query(ge=-1, le=64)] = -1,
     top: Annotated[int, Query(ge=1, le=200)] = 10,
 ) -> dict[str, Any]:
     """Octree search for a pair: occupied cubes, ranked candidates with overlap scores, the winner."""

@@ -9,12 +9,13 @@ from __future__ import annotations
 from typing import Any
 
 from fastapi import APIRouter
-from pydantic import BaseModel, Field
+from pydantic import Field
 
 from app.errors import EditError, WorkbenchError
 from app.jobs import Cancel, Progress, Work
 from app.registration import registration_job
 from app.routes.dependencies import Author, SessionDep, WorkbenchDep
+from app.validation import RequestBody
 from app.workbench import SessionState
 from slam6d.errors import Cancelled
 from slam6d.octree import reduce_points
@@ -22,9 +23,9 @@ from slam6d.octree import reduce_points
 router = APIRouter(prefix="/api", tags=["jobs"])
 
 
-class JobRequest(BaseModel):
+class JobRequest(RequestBody):
     kind: str = Field(description="'register' (the whole pipeline) or 'reload' (re-read and reduce the scans)")
-    parameters: dict[str, Any] = Field(default_factory=dict)
+    parameters: dict[str, Any] = Field(default_factory=dict, max_length=100)
 
 
 def reload_job(state: SessionState, parameters: dict[str, Any]) -> Work:
@@ -67,9 +68,12 @@ def start_job(
 def get_job(job_id: str, workbench: WorkbenchDep) -> dict[str, Any]:
     """A job's status, stage, progress and (once done) result."""
     job = workbench.jobs.get(job_id)
-    if job is None:
+    if job is not None:
+        return job.as_dict()
+    recorded = workbench.recorded_job(job_id)  # a job of an earlier server process, e.g. cut short by a crash
+    if recorded is None:
         raise EditError(f"no job '{job_id}'", 404)
-    return job.as_dict()
+    return recorded
 
 
 @router.delete("/jobs/{job_id}")

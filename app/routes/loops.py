@@ -14,6 +14,7 @@ from fastapi import APIRouter
 from app.guard import requires
 from app.routes.dependencies import REQUIRE_SESSION, Author, EditorDep, WorkbenchDep
 from app.tokens import Role
+from app.validation import IndexPath
 
 router = APIRouter(prefix="/api/sessions/{session_id}", tags=["loops"], dependencies=[REQUIRE_SESSION])
 
@@ -34,13 +35,13 @@ def detect_loops(
 
 
 @router.post("/loops/{k}/accept", openapi_extra=requires(Role.reviewer))
-def accept_loop(session_id: str, k: int, editor: EditorDep, author: Author = "anonymous") -> dict[str, Any]:
+def accept_loop(session_id: str, k: IndexPath, editor: EditorDep, author: Author = "anonymous") -> dict[str, Any]:
     """Hypothesis ``k``'s ICP-verified edge joins the graph (a new revision)."""
     return editor.loops.decide(session_id, k, True, author)
 
 
 @router.post("/loops/{k}/reject", openapi_extra=requires(Role.reviewer))
-def reject_loop(session_id: str, k: int, editor: EditorDep, author: Author = "anonymous") -> dict[str, Any]:
+def reject_loop(session_id: str, k: IndexPath, editor: EditorDep, author: Author = "anonymous") -> dict[str, Any]:
     """Hypothesis ``k`` is turned down (a new revision recording it)."""
     return editor.loops.decide(session_id, k, False, author)
 

@@ -9,21 +9,22 @@ from __future__ import annotations
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Query
-from pydantic import BaseModel, Field
+from pydantic import Field
 
 from app.routes.dependencies import REQUIRE_SESSION, Author, EditorDep, SessionDep, WorkbenchDep
+from app.validation import MAX_INDEX, Index, RequestBody, RevisionQuery
 from slam6d.residuals import displacements
 
 router = APIRouter(prefix="/api/sessions/{session_id}", tags=["relaxation"], dependencies=[REQUIRE_SESSION])
 
 
-class RelaxRequest(BaseModel):
+class RelaxRequest(RequestBody):
     method: str = Field(
         "lum",
         description="'lum' (joint point-to-plane over overlapping scans, slam6d run's default), "
         "'graph' (ICP per edge of the session's graph, then a pose-graph solve) or 'simultaneous'",
     )
-    fixed: list[int] = Field(default_factory=lambda: [0], description="scans held in place")
+    fixed: list[Index] = Field(default_factory=lambda: [0], max_length=100_000, description="scans held in place")
 
 
 @router.post("/relax", status_code=202)
@@ -41,9 +42,7 @@ def relax(
 
 
 @router.get("/residuals")
-def residuals(
-    session_id: str, state: SessionDep, editor: EditorDep, rev: Annotated[int | None, Query(ge=0)] = None
-) -> dict[str, Any]:
+def residuals(session_id: str, state: SessionDep, editor: EditorDep, rev: RevisionQuery = None) -> dict[str, Any]:
     """Closest-point RMS and paired fraction over the graph's edges (the guardrail's measure)."""
     revision = state.session.get_revision(rev)
     return editor.context.residuals(session_id, revision.poses, revision.graph).as_dict()
@@ -51,7 +50,7 @@ def residuals(
 
 @router.get("/displacement")
 def displacement(
-    state: SessionDep, before: Annotated[int, Query(ge=0)], after: Annotated[int | None, Query(ge=0)] = None
+    state: SessionDep, before: Annotated[int, Query(ge=0, le=MAX_INDEX)], after: RevisionQuery = None
 ) -> dict[str, Any]:
     """Per-scan distance (m) each scan moved between two revisions (default: to the current one)."""
     a, b = state.session.get_revision(before), state.session.get_revision(after)

@@ -4,11 +4,13 @@ from __future__ import annotations
 
 from typing import Annotated, Any
 
-from fastapi import APIRouter, File, Form, Request, UploadFile
+from fastapi import APIRouter, File, Form, UploadFile
+from fastapi.concurrency import run_in_threadpool
 from pydantic import BaseModel, Field
 
 from app.errors import UploadError
 from app.routes.dependencies import REQUIRE_SESSION, Author, SessionDep, WorkbenchDep
+from app.validation import RequestBody
 
 router = APIRouter(prefix="/api/sessions", tags=["sessions"])
 
@@ -20,9 +22,10 @@ class SessionSummary(BaseModel):
     revision: int
     format: str
     error: str | None = None
+    repaired: list[str] = Field(default_factory=list, description="what the server repaired when it started")
 
 
-class CreateFromFolder(BaseModel):
+class CreateFromFolder(RequestBody):
     name: str = Field(min_length=1, max_length=200)
     source: str = Field(min_length=1, description="a folder of scans (or one scan file) on the server")
     format: str | None = None
@@ -47,27 +50,19 @@ def create_session(body: CreateFromFolder, workbench: WorkbenchDep) -> dict[str,
 
 @router.post("/upload", status_code=201, response_model=SessionSummary)
 async def upload_session(
-    request: Request,
     workbench: WorkbenchDep,
     name: Annotated[str, Form(min_length=1, max_length=200)],
     files: Annotated[list[UploadFile], File(description="scan files (with pose sidecars) or one .zip")],
     format: Annotated[str | None, Form()] = None,
     frame: Annotated[str | None, Form()] = None,
 ) -> dict[str, Any]:
-    """Create a session from uploaded scans; all of them are parsed before anything is kept."""
-    limit = workbench.max_upload_bytes
-    too_large = UploadError(f"upload exceeds the limit of {limit // 2**20} MiB", 413)
-    if int(request.headers.get("content-length") or 0) > limit + 1024 * 1024:
-        raise too_large
-    contents = []
-    total = 0
-    for upload in files:
-        data = await upload.read(limit + 1 - total)
-        total += len(data)
-        if total > limit:
-            raise too_large
-        contents.append((upload.filename or "", data))
-    session = workbench.create_from_upload(name, contents, format or None, frame or None)
+    """Create a session from uploaded scans; all of them are parsed before anything is kept.
+
+    The body is bounded as it streams (413), the files are spooled to disk by the multipart parser,
+    and unpacking and parsing run on a worker thread, so other requests are not held up meanwhile.
+    """
+    streams = [(upload.filename or "", upload.file) for upload in files]
+    session = await run_in_threadpool(workbench.create_from_upload, name, streams, format or None, frame or None)
     return workbench.summary(session.id)
 
 

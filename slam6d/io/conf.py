@@ -15,14 +15,12 @@ from slam6d.errors import FormatError
 from slam6d.geometry import Y_UP, Matrix, make_pose, quaternion_to_rotation
 from slam6d.io.ply import read_ply
 from slam6d.io.registry import CloudData, ScanFormat, register_format
+from slam6d.io.source import read_file_text
 
 
 def read_conf(path: Path) -> list[tuple[Path, Matrix]]:
     """(scan file, native world_from_scan) for every ``bmesh`` line, in file order."""
-    try:
-        text = path.read_text()
-    except (OSError, UnicodeDecodeError) as exc:
-        raise FormatError(path, f"cannot read: {exc}") from None
+    text = read_file_text(path, "'bmesh FILE tx ty tz qx qy qz qw' lines")
     entries = []
     for line_no, line in enumerate(text.splitlines(), start=1):
         fields = line.split()
@@ -35,7 +33,7 @@ def read_conf(path: Path) -> list[tuple[Path, Matrix]]:
         try:
             tx, ty, tz, qx, qy, qz, qw = (float(v) for v in fields[2:])
         except ValueError:
-            raise FormatError(path, f"not a number in '{line.strip()}'", line_no) from None
+            raise FormatError(path, "not a number in the line", line_no) from None
         rotation = quaternion_to_rotation([qw, qx, qy, qz]).T
         entries.append((path.parent / fields[1], make_pose(rotation, [tx, ty, tz])))
     if not entries:

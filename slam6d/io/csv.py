@@ -20,6 +20,7 @@ import numpy as np
 from slam6d.errors import FormatError
 from slam6d.geometry import CANONICAL, Matrix
 from slam6d.io.registry import CloudData, ScanFormat, register_format
+from slam6d.io.source import check_regular_file
 from slam6d.io.text import parse_numeric_rows, read_text_file
 
 _GT_COLUMNS = [f"gt{r}{c}" for r in range(4) for c in range(4)]
@@ -47,9 +48,10 @@ def _is_number(text: str) -> bool:
 
 def is_list_file(path: Path) -> bool:
     try:
+        check_regular_file(path)  # a FIFO named *.csv must not block the folder listing
         with path.open() as fh:
-            first = fh.readline()
-    except (OSError, UnicodeDecodeError):
+            first = fh.readline(4096)
+    except (OSError, UnicodeDecodeError, FormatError):
         return False
     return first.split(",")[0].strip().lower() == "reading"
 
@@ -106,7 +108,7 @@ def read_csv_cloud(path: Path) -> CloudData:
         body = "\n".join(text.splitlines()[header_index + 1 :])
         first_line = header_index + 2
     if missing := [a for a in "xyz" if a not in columns]:
-        raise FormatError(path, f"no column(s) {missing} in header {first}", header_index + 1)
+        raise FormatError(path, f"no column(s) {missing} in the header line", header_index + 1)
     rows = parse_numeric_rows(path, body, (len(columns),), delimiter=delimiter, first_line=first_line)
     if rows.shape[0] == 0:
         return CloudData(np.empty((0, 3)))

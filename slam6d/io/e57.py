@@ -16,6 +16,7 @@ from numpy.typing import NDArray
 from slam6d.errors import FormatError
 from slam6d.geometry import CANONICAL, Matrix, invert, make_pose, rotation_to_quaternion, transform_points
 from slam6d.io.registry import CloudData, ScanFormat, register_format
+from slam6d.io.source import check_regular_file
 
 
 def _scan_points(e57, index: int) -> tuple[NDArray[np.float64], NDArray[np.float32] | None]:  # type: ignore[no-untyped-def]
@@ -40,6 +41,7 @@ def _scan_pose(header) -> Matrix | None:  # type: ignore[no-untyped-def]
 def read_e57(path: Path) -> CloudData:
     import pye57
 
+    check_regular_file(path)
     try:
         e57 = pye57.E57(str(path))
         try:
@@ -51,8 +53,7 @@ def read_e57(path: Path) -> CloudData:
         finally:
             e57.close()
     except (pye57.libe57.E57Exception, RuntimeError, ValueError, KeyError, OSError) as exc:
-        reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        raise FormatError(path, f"cannot read as E57: {reason}") from None
+        raise FormatError(path, f"cannot read as E57 ({type(exc).__name__})") from None
     reference = poses[0]
     to_first = invert(reference if reference is not None else np.eye(4))
     parts: list[NDArray[np.float64]] = []

@@ -20,6 +20,7 @@ from slam6d.errors import FormatError
 from slam6d.geometry import CANONICAL, Matrix
 from slam6d.io.poses import read_kitti_poses
 from slam6d.io.registry import CloudData, ScanFormat, register_format
+from slam6d.io.source import read_file_bytes
 
 RECORD = np.dtype([("xyz", "<f4", (3,)), ("intensity", "<f4")])
 
@@ -29,10 +30,7 @@ class AmbiguousPosesWarning(UserWarning):
 
 
 def read_kitti_bin(path: Path) -> CloudData:
-    try:
-        raw = path.read_bytes()
-    except OSError as exc:
-        raise FormatError(path, f"cannot read: {exc.strerror}") from None
+    raw = read_file_bytes(path)
     if len(raw) % RECORD.itemsize:
         raise FormatError(
             path,
@@ -65,10 +63,10 @@ def discover_kitti(directory: Path) -> list[Path]:
 
 def _count_rows(path: Path) -> int:
     try:
-        with path.open("rb") as fh:
-            return sum(1 for line in fh if line.strip() and not line.lstrip().startswith(b"#"))
-    except OSError:
+        data = read_file_bytes(path, limit=256 << 20)  # a poses file of 256 MB would be 2 M poses
+    except FormatError:
         return -1
+    return sum(1 for line in data.splitlines() if line.strip() and not line.lstrip().startswith(b"#"))
 
 
 def find_kitti_poses_file(files: list[Path]) -> Path | None:

@@ -8,7 +8,9 @@ scanners use it inconsistently.
 
 from __future__ import annotations
 
+import struct
 from pathlib import Path
+from typing import BinaryIO
 
 import numpy as np
 from numpy.typing import NDArray
@@ -16,17 +18,87 @@ from numpy.typing import NDArray
 from slam6d.errors import FormatError
 from slam6d.geometry import CANONICAL
 from slam6d.io.registry import CloudData, ScanFormat, register_format
+from slam6d.io.source import check_regular_file
+
+_HEADER_BYTES = 375  # the LAS 1.4 public header; older versions' headers are shorter
+_MIN_VLR_BYTES = 54  # a variable-length record's own header
+_MIN_EVLR_BYTES = 60
+# LAZ stores 5-10x smaller than LAS; a header claiming more than this many times the file is lying
+# (and laspy/lazrs would allocate what it claims before finding out).
+_MAX_LAZ_EXPANSION = 64
+
+
+def check_las_header(path: Path, stream: BinaryIO, file_size: int) -> None:
+    """Refuse a LAS/LAZ file whose public header claims what the file cannot hold.
+
+    laspy trusts the header's point count, record length and record counts and allocates for them
+    first; a damaged or hostile header (10^12 points in a 4 kB file) would exhaust memory before any
+    error. Checked here from the fixed header layout (ASPRS LAS 1.0-1.4), so that only plausible
+    files reach the library. LAZ files also get their chunk table checked (lazrs allocates the
+    number of chunks it claims).
+    """
+    head = stream.read(_HEADER_BYTES)
+    if len(head) < 227 or head[:4] != b"LASF":
+        raise FormatError(path, "not a LAS/LAZ file (no 'LASF' header)")
+    minor = head[25]
+    header_size = int.from_bytes(head[94:96], "little")
+    point_offset = int.from_bytes(head[96:100], "little")
+    vlrs = int.from_bytes(head[100:104], "little")
+    point_format = head[104]
+    record_length = int.from_bytes(head[105:107], "little")
+    points = int.from_bytes(head[107:111], "little")
+    if minor >= 4 and len(head) >= 255 and header_size >= 375:
+        points = int.from_bytes(head[247:255], "little") or points
+        evlrs = int.from_bytes(head[243:247], "little")
+        if evlrs * _MIN_EVLR_BYTES > file_size:
+            raise FormatError(path, f"LAS header claims {evlrs:,} extended records, more than the file holds")
+    if not 227 <= header_size <= point_offset <= file_size:
+        raise FormatError(path, "LAS header sizes and point data offset are inconsistent (damaged file)")
+    if vlrs * _MIN_VLR_BYTES > point_offset - header_size:
+        raise FormatError(path, f"LAS header claims {vlrs:,} variable-length records, more than the file holds")
+    if record_length < 20:
+        raise FormatError(path, f"LAS point record length {record_length} is below the smallest format's 20 bytes")
+    compressed = bool(point_format & 0x80) or path.suffix.lower() == ".laz"
+    available = (file_size - point_offset) * (_MAX_LAZ_EXPANSION if compressed else 1)
+    if points * record_length > available:
+        raise FormatError(
+            path,
+            f"LAS header claims {points:,} points of {record_length} bytes, more than the file's "
+            f"{file_size:,} bytes can hold (truncated or damaged)",
+        )
+    if compressed:
+        _check_laz_chunk_table(path, stream, point_offset, file_size, points)
+
+
+def _check_laz_chunk_table(path: Path, stream: BinaryIO, point_offset: int, file_size: int, points: int) -> None:
+    """The LAZ chunk table (its offset is the first 8 bytes of the point data) must be version 0 and
+    list no more chunks than there are points or bytes."""
+    stream.seek(point_offset)
+    table_offset = int.from_bytes(stream.read(8), "little", signed=True)
+    if table_offset == -1:  # written without a table: the reader walks the chunks
+        return
+    if not point_offset + 8 <= table_offset <= file_size - 8:
+        raise FormatError(path, "LAZ chunk table lies outside the file (truncated or damaged)")
+    stream.seek(table_offset)
+    version = int.from_bytes(stream.read(4), "little")
+    chunks = int.from_bytes(stream.read(4), "little")
+    if version != 0 or chunks > max(points, 1) or chunks > file_size:
+        raise FormatError(path, f"LAZ chunk table (version {version}, {chunks:,} chunks) is damaged")
 
 
 def read_las(path: Path) -> CloudData:
     import laspy
 
+    size = check_regular_file(path)
+    with open(path, "rb") as stream:
+        check_las_header(path, stream, size)
     try:
         las = laspy.read(path)
         points = np.stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)], axis=1).astype(np.float64)
         intensity = np.asarray(las.intensity, dtype=np.float32)
-    except (laspy.errors.LaspyException, RuntimeError, ValueError, OSError) as exc:
-        raise FormatError(path, f"cannot read as LAS/LAZ: {exc}") from None
+    except (laspy.errors.LaspyException, RuntimeError, ValueError, OSError, EOFError, struct.error) as exc:
+        # laspy's messages quote the file's bytes; only the kind of failure is told
+        raise FormatError(path, f"cannot read as LAS/LAZ ({type(exc).__name__})") from None
     return CloudData(points.reshape(-1, 3), intensity.reshape(-1))
 
 

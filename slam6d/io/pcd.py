@@ -18,12 +18,16 @@ from numpy.typing import NDArray
 from slam6d.errors import FormatError
 from slam6d.geometry import CANONICAL, Matrix, make_pose, quaternion_to_rotation, rotation_to_quaternion
 from slam6d.io.registry import CloudData, ScanFormat, register_format
+from slam6d.io.source import read_file_bytes
 from slam6d.io.text import parse_numeric_rows
 
 _HEADER_KEYS = ("VERSION", "FIELDS", "SIZE", "TYPE", "COUNT", "WIDTH", "HEIGHT", "VIEWPOINT", "POINTS", "DATA")
 _TYPE_CODES = {("F", 4): "f4", ("F", 8): "f8", ("I", 1): "i1", ("I", 2): "i2", ("I", 4): "i4", ("I", 8): "i8"}
 _TYPE_CODES |= {("U", 1): "u1", ("U", 2): "u2", ("U", 4): "u4", ("U", 8): "u8"}
 INTENSITY_NAMES = ("intensity", "i", "reflectance")
+# An LZF back-reference of 3 bytes stands for at most 264: no stream expands more than ~88-fold, so a
+# size word claiming more is damaged (and would allocate that much before decoding failed).
+_LZF_MAX_EXPANSION = 90
 
 
 @dataclass
@@ -64,12 +68,14 @@ def parse_pcd_header(path: Path, raw: bytes) -> PcdHeader:
             continue
         key, *rest = line.split()
         if key not in _HEADER_KEYS:
-            raise FormatError(path, f"unexpected PCD header keyword '{key}'", line_no)
+            raise FormatError(
+                path, f"unexpected PCD header keyword (expected one of {', '.join(_HEADER_KEYS)})", line_no
+            )
         values[key] = rest
         if key in ("WIDTH", "HEIGHT", "POINTS") and (len(rest) != 1 or not rest[0].isdigit()):
             raise FormatError(path, f"{key} must be one non-negative integer", line_no)
         if key == "DATA" and rest not in (["ascii"], ["binary"], ["binary_compressed"]):
-            raise FormatError(path, f"unknown DATA '{' '.join(rest)}' (ascii, binary, binary_compressed)", line_no)
+            raise FormatError(path, "unknown DATA (expected ascii, binary or binary_compressed)", line_no)
     for key in ("FIELDS", "SIZE", "TYPE", "WIDTH"):
         if key not in values:
             raise FormatError(path, f"PCD header lacks {key}")
@@ -84,9 +90,9 @@ def parse_pcd_header(path: Path, raw: bytes) -> PcdHeader:
     except ValueError:
         raise FormatError(path, "SIZE, COUNT and VIEWPOINT must be numbers") from None
     dtypes = []
-    for name, kind, size in zip(fields, values["TYPE"], sizes, strict=True):
+    for kind, size in zip(values["TYPE"], sizes, strict=True):
         if (kind, size) not in _TYPE_CODES:
-            raise FormatError(path, f"field '{name}': unsupported TYPE {kind} with SIZE {size}")
+            raise FormatError(path, "unsupported TYPE and SIZE combination (F 4/8, I or U 1/2/4/8)")
         dtypes.append(_TYPE_CODES[(kind, size)])
     if viewpoint.shape != (7,):
         raise FormatError(path, "VIEWPOINT needs 7 numbers (tx ty tz qw qx qy qz)")
@@ -142,6 +148,8 @@ def _records(path: Path, raw: bytes, header: PcdHeader) -> np.ndarray:
         raise FormatError(path, f"binary_compressed body decodes to {size} bytes, header implies {needed}")
     if len(body) - 8 < compressed_size:
         raise FormatError(path, f"truncated: compressed body is {len(body) - 8} of {compressed_size} bytes")
+    if size > _LZF_MAX_EXPANSION * compressed_size + 64:
+        raise FormatError(path, f"binary_compressed body cannot decode to {size:,} bytes from {compressed_size:,}")
     data = lzf_decompress(path, bytes(body[8 : 8 + compressed_size]), size) if size else b""
     # Field by field (struct of arrays) on disk: reassemble into records.
     records = np.zeros(header.points, dtype=dtype)
@@ -162,10 +170,7 @@ def _viewpoint_pose(viewpoint: NDArray[np.float64]) -> Matrix | None:
 
 
 def read_pcd(path: Path) -> CloudData:
-    try:
-        raw = path.read_bytes()
-    except OSError as exc:
-        raise FormatError(path, f"cannot read: {exc.strerror}") from None
+    raw = read_file_bytes(path)
     header = parse_pcd_header(path, raw)
     records = _records(path, raw, header)
     points = np.stack([records[a].astype(np.float64) for a in "xyz"], axis=1).reshape(-1, 3)

@@ -18,6 +18,7 @@ from numpy.typing import NDArray
 from slam6d.errors import FormatError
 from slam6d.geometry import CANONICAL
 from slam6d.io.registry import CloudData, ScanFormat, register_format
+from slam6d.io.source import read_file_bytes
 from slam6d.io.text import parse_numeric_rows
 
 _TYPES = {
@@ -90,11 +91,15 @@ def parse_ply_header(path: Path, raw: bytes) -> PlyHeader:
             continue
         if words[0] == "format":
             if len(words) != 3 or words[1] not in _ENCODINGS:
-                raise FormatError(path, f"unknown PLY format line '{line.strip()}'", line_no)
+                raise FormatError(
+                    path,
+                    "unknown PLY format line (expected: format ascii|binary_little_endian|binary_big_endian VERSION)",
+                    line_no,
+                )
             encoding = words[1]
         elif words[0] == "element":
             if len(words) != 3 or not words[2].isdigit():
-                raise FormatError(path, f"bad element line '{line.strip()}' (expected: element NAME COUNT)", line_no)
+                raise FormatError(path, "bad element line (expected: element NAME COUNT)", line_no)
             elements.append(PlyElement(words[1], int(words[2])))
         elif words[0] == "property":
             if not elements:
@@ -104,9 +109,13 @@ def parse_ply_header(path: Path, raw: bytes) -> PlyHeader:
             elif len(words) == 3 and words[1] in _TYPES:
                 elements[-1].properties.append(PlyProperty(words[2], _TYPES[words[1]]))
             else:
-                raise FormatError(path, f"bad property line '{line.strip()}'", line_no)
+                raise FormatError(
+                    path, "bad property line (expected: property TYPE NAME or property list TYPE TYPE NAME)", line_no
+                )
         else:
-            raise FormatError(path, f"unexpected PLY header keyword '{words[0]}'", line_no)
+            raise FormatError(
+                path, "unexpected PLY header keyword (expected format, element, property, comment, obj_info)", line_no
+            )
     if encoding is None:
         raise FormatError(path, "PLY header has no 'format' line")
     return PlyHeader(encoding, elements, body_offset, len(lines))
@@ -171,10 +180,7 @@ def _read_binary(path: Path, raw: bytes, header: PlyHeader, index: int, vertex: 
 
 
 def read_ply(path: Path) -> CloudData:
-    try:
-        raw = path.read_bytes()
-    except OSError as exc:
-        raise FormatError(path, f"cannot read: {exc.strerror}") from None
+    raw = read_file_bytes(path)
     header = parse_ply_header(path, raw)
     index, vertex = _vertex_element(path, header)
     names = [p.name for p in vertex.properties]

@@ -15,6 +15,7 @@ from numpy.typing import NDArray
 
 from slam6d.errors import FormatError
 from slam6d.geometry import Matrix, make_pose, quaternion_to_rotation, rotation_to_quaternion
+from slam6d.io.source import read_file_text
 from slam6d.io.text import parse_numeric_rows, read_text_file
 
 G2oEdge = tuple[int, int, Matrix, Matrix]  # (from, to, relative pose from->to, 6x6 information)
@@ -143,10 +144,7 @@ def write_g2o(path: Path | str, poses: Sequence[Matrix], edges: Sequence[G2oEdge
 def read_g2o(path: Path | str) -> tuple[list[Matrix], list[G2oEdge]]:
     """Vertices (in id order) and edges of a g2o SE3 file; other record types are ignored."""
     path = Path(path)
-    try:
-        lines = path.read_text().splitlines()
-    except (OSError, UnicodeDecodeError) as exc:
-        raise FormatError(path, f"cannot read: {exc}") from None
+    lines = read_file_text(path, "g2o VERTEX_SE3:QUAT / EDGE_SE3:QUAT lines").splitlines()
     vertices: dict[int, Matrix] = {}
     edges: list[G2oEdge] = []
     rows, cols = np.triu_indices(6)
@@ -160,7 +158,7 @@ def read_g2o(path: Path | str) -> tuple[list[Matrix], list[G2oEdge]]:
         try:
             values = [float(v) for v in fields[1:]]
         except ValueError:
-            raise FormatError(path, f"not a number in '{line.strip()}'", line_no) from None
+            raise FormatError(path, "not a number in the line", line_no) from None
         if fields[0] == "VERTEX_SE3:QUAT":
             v = values
             vertices[int(v[0])] = make_pose(quaternion_to_rotation([v[7], v[4], v[5], v[6]]), v[1:4])

@@ -16,8 +16,8 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from slam6d.errors import EmptyScanError, FormatError
-from slam6d.geometry import FrameConvention, Matrix
+from slam6d.errors import EmptyScanError, FormatError, InvalidValueError
+from slam6d.geometry import FrameConvention, Matrix, check_rigid
 from slam6d.scan import Scan, ScanSequence
 
 
@@ -145,7 +145,7 @@ def read_scan(
     fmt = resolve_format(path, format_name)
     cloud = clean_points(path, fmt.read(path), options)
     conv = convention or fmt.convention
-    pose = conv.pose_to_canonical(cloud.pose) if cloud.pose is not None else np.eye(4)
+    pose = conv.pose_to_canonical(rigid_pose(path, cloud.pose)) if cloud.pose is not None else np.eye(4)
     intensity = None if cloud.intensity is None else np.asarray(cloud.intensity, dtype=np.float32)
     return Scan(
         conv.points_to_canonical(cloud.points),
@@ -155,6 +155,16 @@ def read_scan(
         intensity=intensity,
         has_pose=cloud.pose is not None,
     )
+
+
+def rigid_pose(path: Path, pose: Matrix, scan: str | None = None) -> Matrix:
+    """A pose a file carries, checked rigid (:func:`slam6d.geometry.check_rigid`), else a
+    :class:`FormatError` naming the file: a scaled or sheared pose would be stored and break every
+    export and solver downstream."""
+    try:
+        return check_rigid(pose, f"pose of {scan}" if scan else "pose")
+    except InvalidValueError as exc:
+        raise FormatError(path, str(exc)) from None
 
 
 def list_scan_files(path: Path, fmt: ScanFormat) -> list[Path]:
@@ -208,7 +218,7 @@ def read_sequence(
         if len(external) < len(all_files):
             raise FormatError(poses_file or path, f"{len(external)} poses for {len(all_files)} scans")
         for scan, native in zip(scans, external[first:stop], strict=True):
-            scan.pose = conv.pose_to_canonical(native)
+            scan.pose = conv.pose_to_canonical(rigid_pose(poses_file or path, native, scan.name))
             scan.has_pose = True
     return ScanSequence(scans, conv, path, fmt.name)
 

@@ -17,6 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from slam6d.errors import FormatError
+from slam6d.io.source import read_file_text
 
 
 def read_text_file(path: Path, expected: str = "") -> str:
@@ -25,12 +26,7 @@ def read_text_file(path: Path, expected: str = "") -> str:
     ``expected`` says what the format wants (e.g. "'x y z' per line"), so the message tells the user
     what the file should have looked like.
     """
-    try:
-        return Path(path).read_text()
-    except UnicodeDecodeError:
-        raise FormatError(path, "not a text file" + (f" (expected {expected})" if expected else "")) from None
-    except OSError as exc:
-        raise FormatError(path, f"cannot read: {exc.strerror}") from None
+    return read_file_text(path, expected)
 
 
 def parse_numeric_rows(
@@ -206,9 +202,9 @@ def _raise_first_bad_line(
             raise FormatError(
                 path, f"expected {expected} numbers per line like the first, found {len(fields)}", line_no
             )
-        for field in fields:
+        for column, field in enumerate(fields, start=1):
             try:
                 float(field)
             except ValueError:
-                raise FormatError(path, f"'{field}' is not a number", line_no) from None
+                raise FormatError(path, f"field {column} is not a number", line_no) from None
     raise FormatError(path, "could not parse numeric rows")

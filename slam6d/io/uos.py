@@ -16,6 +16,7 @@ import numpy as np
 from slam6d.errors import FormatError
 from slam6d.geometry import UOS, Matrix, rotation_to_euler, uos_pose
 from slam6d.io.registry import CloudData, ScanFormat, register_format
+from slam6d.io.source import read_file_bytes
 from slam6d.io.text import parse_numeric_bytes, parse_numeric_rows, read_text_file
 
 NO_ECHO_RANGE_CM = 3276.0
@@ -38,7 +39,7 @@ def read_pose_file(path: Path) -> Matrix:
         try:
             rows.append([float(f) for f in fields])
         except ValueError:
-            raise FormatError(path, f"not a number in '{line.strip()}'", line_no) from None
+            raise FormatError(path, "not a number in the line", line_no) from None
     values = np.array(rows)
     if not np.isfinite(values).all():
         raise FormatError(path, "pose contains NaN or infinity")
@@ -53,10 +54,7 @@ def write_pose_file(path: Path, native_pose: Matrix) -> None:
 
 def read_uos_scan(path: Path) -> CloudData:
     columns = (3, 4, 6, 7)
-    try:
-        data = path.read_bytes()
-    except OSError as exc:
-        raise FormatError(path, f"cannot read: {exc.strerror}") from None
+    data = read_file_bytes(path)
     rows = parse_numeric_bytes(data, columns)
     if rows is None:  # not plain numbers: the general parser reads it or names the bad line
         try:

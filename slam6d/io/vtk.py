@@ -18,6 +18,7 @@ from slam6d.errors import FormatError
 from slam6d.geometry import CANONICAL
 from slam6d.io.csv import discover_listed, listed_poses
 from slam6d.io.registry import CloudData, ScanFormat, register_format
+from slam6d.io.source import read_file_bytes
 
 _TYPES = {"float": "f4", "double": "f8", "int": "i4", "unsigned_int": "u4", "short": "i2", "long": "i8"}
 
@@ -45,17 +46,17 @@ def _points_header(path: Path, raw: bytes) -> tuple[str, int, str, int, int]:
         raise FormatError(path, "VTK header is shorter than 4 lines", len(head))
     encoding = head[2][2].upper()
     if encoding not in ("ASCII", "BINARY"):
-        raise FormatError(path, f"third line must be ASCII or BINARY, found '{head[2][2]}'", 3)
+        raise FormatError(path, "third line must be ASCII or BINARY", 3)
     if not head[3][2].upper().startswith("DATASET"):
-        raise FormatError(path, f"fourth line must be 'DATASET …', found '{head[3][2]}'", 4)
+        raise FormatError(path, "fourth line must be 'DATASET …'", 4)
     for line_no, next_offset, text in head[4:]:
         words = text.split()
         if not words:
             continue
         if words[0].upper() != "POINTS":
-            raise FormatError(path, f"expected a POINTS section, found '{words[0]}'", line_no)
+            raise FormatError(path, "expected a POINTS section", line_no)
         if len(words) != 3 or not words[1].isdigit() or words[2].lower() not in _TYPES:
-            raise FormatError(path, f"bad POINTS line '{text}' (expected: POINTS N float|double)", line_no)
+            raise FormatError(path, "bad POINTS line (expected: POINTS N float|double)", line_no)
         return encoding, int(words[1]), _TYPES[words[2].lower()], next_offset, line_no
     raise FormatError(path, "no POINTS section in the VTK header")
 
@@ -77,19 +78,16 @@ def _ascii_points(path: Path, text: str, count: int, first_line: int) -> NDArray
         return np.array(" ".join(block).split(), dtype=np.float64).reshape(-1, 3)
     except ValueError:
         for offset, line in enumerate(block):
-            for word in line.split():
+            for column, word in enumerate(line.split(), start=1):
                 try:
                     float(word)
                 except ValueError:
-                    raise FormatError(path, f"'{word}' is not a number", first_line + offset) from None
+                    raise FormatError(path, f"field {column} is not a number", first_line + offset) from None
         raise
 
 
 def read_vtk(path: Path) -> CloudData:
-    try:
-        raw = path.read_bytes()
-    except OSError as exc:
-        raise FormatError(path, f"cannot read: {exc.strerror}") from None
+    raw = read_file_bytes(path)
     encoding, count, dtype, offset, line_no = _points_header(path, raw)
     if encoding == "BINARY":
         needed = 3 * count * np.dtype(dtype).itemsize
