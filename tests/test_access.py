@@ -275,7 +275,7 @@ def test_every_session_response_carries_its_revision_and_stale_if_match_is_412(s
     assert (
         shared.post(f"/api/sessions/{SESSION}/undo", json={}, headers={**editor, "If-Match": '"0"'}).status_code == 412
     )
-    assert move(shared, 2, 7.0, {**editor, "If-Match": "bogus"}).status_code == 400
+    assert move(shared, 2, 7.0, {**editor, "If-Match": "bogus"}).status_code == 422  # refused, not ignored
     assert move(shared, 2, 7.0, {**editor, "If-Match": '"1"'}).status_code == 200
 
 

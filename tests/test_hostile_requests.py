@@ -32,7 +32,11 @@ def sessions_dir(tmp_path: Path) -> Path:
 
 @pytest.fixture
 def client(sessions_dir: Path):
-    with TestClient(create_app(sessions_dir, viewers=False, max_upload_mb=1), raise_server_exceptions=False) as c:
+    with TestClient(
+        create_app(sessions_dir, viewers=False, max_upload_mb=1),
+        base_url="http://127.0.0.1",
+        raise_server_exceptions=False,
+    ) as c:
         yield c
 
 
@@ -186,15 +190,15 @@ def test_an_unexpected_error_is_500_with_a_reference_only(client: TestClient, mo
 def test_redo_answers_the_revision_even_when_a_view_fails_to_follow(client: TestClient) -> None:
     moved = client.post(f"{CORRIDOR}/scans/1/pose", json={"pose": _rigid()})
     assert moved.status_code == 200, moved.text
-    assert client.post(f"{CORRIDOR}/undo").status_code == 200
+    assert client.post(f"{CORRIDOR}/undo", json={}).status_code == 200
 
     def broken_view(session_id: str) -> None:
         raise ValueError("a view that cannot follow")
 
     client.app.state.workbench.on_revision(broken_view)  # type: ignore[attr-defined]
-    redone = client.post(f"{CORRIDOR}/redo")
+    redone = client.post(f"{CORRIDOR}/redo", json={})
     assert redone.status_code == 200 and redone.json()["revision"] == moved.json()["revision"]
-    assert client.post(f"{CORRIDOR}/redo").status_code == 409  # now nothing is left to redo
+    assert client.post(f"{CORRIDOR}/redo", json={}).status_code == 409  # now nothing is left to redo
 
 
 def test_racing_first_reads_store_one_import(tmp_path: Path) -> None:

@@ -65,7 +65,9 @@ def test_the_server_starts_with_a_broken_session_and_answers_for_lost_jobs(tmp_p
     (root / "corridor" / "session.toml").replace(broken / "session.toml")
     (root / "corridor" / "session.toml").write_text((broken / "session.toml").read_text())
     (broken / JOURNAL_FILE).write_bytes(b"SQLite format 3\x00" + b"\x13" * 4000)  # garbage pages
-    with TestClient(create_app(root, viewers=False), raise_server_exceptions=False) as client:
+    with TestClient(
+        create_app(root, viewers=False), base_url="http://127.0.0.1", raise_server_exceptions=False
+    ) as client:
         listed = {s["id"]: s for s in client.get("/api/sessions").json()}
         assert listed["broken"]["error"] and "cannot be opened" in listed["broken"]["error"]
         assert listed["corridor"]["error"] is None and len(listed["corridor"]["repaired"]) == 3
@@ -80,7 +82,7 @@ def test_the_server_starts_with_a_broken_session_and_answers_for_lost_jobs(tmp_p
 def test_jobs_are_journaled_when_they_start_and_end(tmp_path: Path) -> None:
     root = tmp_path / "sessions"
     corridor_session(root, scans=3, points=300)
-    with TestClient(create_app(root, viewers=False)) as client:
+    with TestClient(create_app(root, viewers=False), base_url="http://127.0.0.1") as client:
         job = client.post("/api/sessions/corridor/jobs", json={"kind": "reload", "parameters": {}}).json()
         client.app.state.workbench.jobs.wait(job["id"])  # type: ignore[attr-defined]
         records = [e for e in Session.open(root / "corridor").journal.entries() if e.kind == JOB_ENTRY]
