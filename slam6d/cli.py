@@ -267,6 +267,13 @@ def run(
     ] = None,
     first: Annotated[int, typer.Option(help="First scan index to use.")] = 0,
     last: Annotated[int | None, typer.Option(help="Last scan index to use (inclusive).")] = None,
+    order: Annotated[
+        str,
+        typer.Option(
+            help="Order of a folder's scan files: natural (2.pcd before 10.pcd, timestamps as numbers), name "
+            "(plain text) or mtime (file time)."
+        ),
+    ] = "natural",
     min_range: Annotated[float | None, typer.Option(help="Drop points nearer than this (input units).")] = None,
     max_range: Annotated[float | None, typer.Option(help="Drop points farther than this (input units).")] = None,
     voxel: Annotated[float, typer.Option(help="Reduction voxel in metres (one real point per voxel); 0 = off.")] = 0.1,
@@ -287,7 +294,11 @@ def run(
     import time
     from concurrent.futures import ThreadPoolExecutor
 
+    from slam6d.io.order import SCAN_ORDERS
     from slam6d.io.registry import ReadOptions, read_sequence, resolve_format
+
+    if order not in SCAN_ORDERS:
+        raise typer.BadParameter(f"--order must be one of {', '.join(SCAN_ORDERS)}, got {order!r}")
 
     def make_config() -> Any:
         from slam6d.icp import ICPConfig
@@ -322,7 +333,14 @@ def run(
                         raise _BadOptions
 
                 sequence = read_sequence(
-                    source, fmt, ReadOptions(min_range, max_range), first, last, poses, progress=read_progress
+                    source,
+                    fmt,
+                    ReadOptions(min_range, max_range),
+                    first,
+                    last,
+                    poses,
+                    progress=read_progress,
+                    order=order,
                 )
         except _BadOptions:
             pass

@@ -113,5 +113,6 @@ UOS_FORMAT = register_format(
         read=read_uos_scan,
         description="3DTK uos: scanNNN.3d + scanNNN.pose (cm, degrees, left-handed, y up)",
         discover=discover_uos,
+        order_fixed_by=lambda _directory: "3DTK's scanNNN numbering",
     )
 )
