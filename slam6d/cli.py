@@ -350,10 +350,30 @@ def run(
         except ValueError as exc:
             raise typer.BadParameter(str(exc)) from None
     from slam6d.pipeline import Pipeline, write_results
+    from slam6d.posegraph import describe_components
 
     pipeline = Pipeline(sequence, config)
-    with progress_bar("registering") as update:
-        report = pipeline.run(progress=lambda _stage, done, total: update(done, total))
+    try:
+        with progress_bar("registering") as update:
+            report = pipeline.run(progress=lambda _stage, done, total: update(done, total))
+    except Slam6dError as exc:
+        if pipeline.report is None or pipeline.report.failure is None:
+            raise
+        # the stages before the failed one are kept: their poses and a report saying what failed
+        paths = write_results(
+            pipeline, out, {"read_seconds": read_seconds, "wall_seconds": time.perf_counter() - began}
+        )
+        failure = pipeline.report.failure
+        err.print(f"[red]error:[/red] the {failure.stage} stage failed: {exc}")
+        if pipeline.report.components:
+            err.print(
+                f"each connected component was relaxed on its own: {describe_components(pipeline.report.components)}"
+            )
+        err.print(
+            f"wrote the poses it has ({pipeline.report.registered_scans} of {len(sequence)} scans registered) to "
+            f"{paths['poses']} and the failure to {paths['report']}"
+        )
+        raise typer.Exit(STAGE_FAILED) from None
     paths = write_results(pipeline, out, {"read_seconds": read_seconds, "wall_seconds": time.perf_counter() - began})
     closed = ", ".join(f"{i}-{j}" for i, j in report.loops_closed) or "none"
     typer.echo(f"{len(sequence)} scans registered; loops closed: {closed}")
@@ -365,6 +385,9 @@ def run(
     stages = ", ".join(f"{k} {v:.2f}s" for k, v in report.stage_seconds.items())
     typer.echo(f"times: reading {read_seconds:.2f}s, {stages}; total {time.perf_counter() - began:.2f}s")
     typer.echo(f"wrote {paths['poses']}, {paths['report']} and {len(sequence)} .frames files")
+
+
+STAGE_FAILED = 3  # exit code of `slam6d run` when a stage failed after earlier ones wrote their results
 
 
 class _BadOptions(Exception):  # noqa: N818 - a signal, not an error shown to anyone

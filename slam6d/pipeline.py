@@ -35,7 +35,7 @@ from typing import Any
 
 import numpy as np
 
-from slam6d.errors import RegistrationError, Slam6dError
+from slam6d.errors import DisconnectedGraphError, RegistrationError, RelaxationError, Slam6dError
 from slam6d.events import (
     Event,
     Finished,
@@ -45,8 +45,10 @@ from slam6d.events import (
     PipelineReport,
     RelaxationProgressed,
     ScanRegistered,
+    ScanSkipped,
     ScanStarted,
     ScanSummary,
+    StageFailure,
 )
 from slam6d.geometry import Matrix, invert
 from slam6d.icp import ICPConfig, ICPIteration, ICPResult, icp_iterations
@@ -177,6 +179,10 @@ class Pipeline:
         self.loops_closed: list[tuple[int, int]] = []
         self.relaxation_result: RelaxationResult | None = None
         self.report: PipelineReport | None = None
+        self.failure: StageFailure | None = None
+        self.components: list[list[int]] = []
+        self.skipped: list[int] = []  # scans sequential registration could not place (ScanSkipped)
+        self.links: list[tuple[int, int]] = []  # (model scan, scan) of every sequential registration
         self._cancel: Callable[[], bool] | None = None
         self._icp_config = replace(config.icp, data_voxel_size=0.0)
         if 0 < self._icp_config.normal_voxel_size <= config.voxel_size:
@@ -225,7 +231,9 @@ class Pipeline:
         while not self.done:
             event = self.step()
             events.append(event)
-            if isinstance(event, ScanRegistered | LoopClosed | LoopsDetected | RelaxationProgressed | Finished):
+            if isinstance(
+                event, ScanRegistered | ScanSkipped | LoopClosed | LoopsDetected | RelaxationProgressed | Finished
+            ):
                 break
         return events
 
@@ -234,16 +242,23 @@ class Pipeline:
         progress: Callable[[str, int, int], None] | None = None,
         cancel: Callable[[], bool] | None = None,
     ) -> PipelineReport:
-        """Run to the end; ``progress(stage, done, total)``; raises :class:`Cancelled` when ``cancel()`` turns true."""
+        """Run to the end; ``progress(stage, done, total)``; raises :class:`Cancelled` when ``cancel()`` turns true.
+
+        A stage that fails (or a cancellation) raises, but only after :attr:`report` has been made
+        with :attr:`PipelineReport.failure` naming the stage and the reason: the poses of the stages
+        before it stay in :attr:`poses` for :func:`write_results`.
+        """
         self._cancel = cancel
         count = len(self.sequence)
         while not self.done:
             if cancel is not None and cancel():
-                raise Cancelled(f"run cancelled during {self.stage}")
+                cancelled = Cancelled(f"run cancelled during {self.stage}")
+                self._fail(cancelled)
+                raise cancelled
             event = self.step()
             if progress is None:
                 continue
-            if isinstance(event, ScanRegistered):
+            if isinstance(event, ScanRegistered | ScanSkipped):
                 progress("registration", event.index + 1, count)
             elif isinstance(event, LoopsDetected) and event.hypotheses:
                 progress("loops", event.hypotheses[0].j + 1, count)
@@ -337,9 +352,26 @@ class Pipeline:
         for k in range(index + 1, len(self.poses)):
             self.poses[k] = anchor @ self.odometry[k] if self.has_odometry[k] else self.poses[index].copy()
 
+    def _fail(self, error: Slam6dError) -> None:
+        """Record why the run stops and make the report of what it has (see :meth:`run`)."""
+        self.failure = StageFailure(self.stage, str(error), type(error).__name__)
+        self.done = True
+        self._finish_preparing()
+        self.report = self._make_report()
+
     # -- the generator
 
     def _events(self) -> Iterator[Event]:
+        try:
+            yield from self._stages()
+        except Slam6dError as error:  # Cancelled included; the stages' results so far are kept
+            self._fail(error)
+            raise
+        self.stage = "finished"
+        self.report = self._make_report()
+        yield Finished(self.report)
+
+    def _stages(self) -> Iterator[Event]:
         self.stage = "registration"
         self.history[0].append((self.poses[0].copy(), FrameType.ICP))
         for index in range(1, len(self.sequence)):
@@ -352,9 +384,12 @@ class Pipeline:
         if self.config.relaxation != "none" and len(self.sequence) > 1:
             self.stage = "relaxation"
             yield from self._relax_stage()
-        self.stage = "finished"
-        self.report = self._make_report()
-        yield Finished(self.report)
+        elif self.skipped:  # nothing else could tell that the map fell apart
+            self.stage = "registration"
+            raise RegistrationError(
+                f"{len(self.skipped)} scan(s) could not be registered: {self.summaries[self.skipped[0]].failure}"
+                + (" ..." if len(self.skipped) > 1 else "")
+            )
 
     def _start_pose(self, index: int) -> Matrix:
         prev = self.poses[index - 1]
@@ -406,7 +441,7 @@ class Pipeline:
     def _register(self, index: int) -> Iterator[Event]:
         began = time.perf_counter()
         cfg = self.config
-        start = self._start_pose(index)
+        start = predicted = self._start_pose(index)
         guess = None
         if cfg.octree_guess == "always" or (cfg.octree_guess == "auto" and not self.has_odometry[index]):
             guess = self._guess(index, start)
@@ -419,13 +454,24 @@ class Pipeline:
             yield ScanStarted(index, guess.transform.copy(), guess, members)
             second = yield from self._run_icp(index, model, world_from_model, guess.transform)
             outcome = better_fit(outcome, second)
+        summary = self.summaries[index]
         if isinstance(outcome, RegistrationError):
-            name = self.summaries[index].name
-            raise RegistrationError(f"scan {index} ({name}) could not be registered: {outcome}") from outcome
+            # the run goes on from the prediction: the scans after it still register among themselves,
+            # and relaxation names the pieces (components) that result
+            reason = f"scan {index} ({summary.name}) could not be registered: {outcome}"
+            self._set_pose(index, predicted, FrameType.ICP_INACTIVE)
+            self._carry_unregistered(index)
+            self.registered = index + 1
+            self.skipped.append(index)
+            summary.registered, summary.failure = False, reason
+            summary.octree_guess = guess is not None
+            summary.seconds = time.perf_counter() - began
+            yield ScanSkipped(index, self.poses[index].copy(), reason)
+            return
         self._set_pose(index, outcome.transform, FrameType.ICP)
         self._carry_unregistered(index)
         self.registered = index + 1
-        summary = self.summaries[index]
+        self.links.append((members[-1], index))
         summary.icp_iterations = len(outcome.iterations)
         summary.rms, summary.fitness, summary.converged = outcome.rms, outcome.fitness, outcome.converged
         summary.octree_guess = guess is not None
@@ -487,9 +533,15 @@ class Pipeline:
                 model = self.registration_model(k)
                 if model is not self.models.index(k):
                     self.models.share_plane_model(k, model)
-        result = relax(
-            self.models, self.poses, fixed=(0,), config=self.config.relax, progress=record, cancel=self._cancel
-        )
+        disconnected: DisconnectedGraphError | None = None
+        try:
+            result = relax(
+                self.models, self.poses, fixed=(0,), config=self.config.relax, progress=record, cancel=self._cancel
+            )
+        except DisconnectedGraphError as error:
+            disconnected = error
+            self.components = error.components
+            result = self._relax_components(relax, error.components, record)
         self.relaxation_result = result
         flag = FrameType.LUM if self.config.relaxation == "lum" else FrameType.ICP
         for k, pose in enumerate(result.poses):
@@ -497,6 +549,61 @@ class Pipeline:
         yield from progress
         if not progress:
             yield RelaxationProgressed(result.iterations, result.residual_after, [])
+        if disconnected is not None:  # each part is relaxed, but they are not one map: the stage failed
+            raise disconnected
+
+    def _relax_components(
+        self,
+        relax: Callable[..., RelaxationResult],
+        components: list[list[int]],
+        record: Callable[[int, float, list[int]], None],
+    ) -> RelaxationResult:
+        """Relax every connected component of more than one scan on its own, anchored at its first scan.
+
+        Scans of the other components keep their poses (the relaxation would otherwise carry them along
+        with the correction of the scan before them). A component that cannot be relaxed (e.g. a
+        singular graph) keeps its poses too. The residuals reported are RMS over the relaxed components.
+        """
+        poses = [p.copy() for p in self.poses]
+        parts: list[RelaxationResult] = []
+        for component in components:
+            if len(component) < 2:
+                continue
+            try:
+                part = relax(
+                    self.models,
+                    self.poses,
+                    fixed=(component[0],),
+                    config=self.config.relax,
+                    members=component,
+                    progress=record,
+                    cancel=self._cancel,
+                )
+            except Cancelled:
+                raise
+            except RelaxationError:
+                continue
+            for k in component:
+                poses[k] = part.poses[k]
+            parts.append(part)
+
+        def combined(values: list[tuple[float | None, int]]) -> float:
+            known = [(v, n) for v, n in values if v is not None and np.isfinite(v) and n > 0]
+            total = sum(n for _, n in known)
+            return float(np.sqrt(sum(v * v * n for v, n in known) / total)) if total else float("nan")
+
+        sizes = [max(len(part.neighbours), 1) for part in parts]
+        return RelaxationResult(
+            poses=poses,
+            residual_before=combined([(part.residual_before, n) for part, n in zip(parts, sizes, strict=True)]),
+            residual_after=combined([(part.residual_after, n) for part, n in zip(parts, sizes, strict=True)]),
+            iterations=max((part.iterations for part in parts), default=0),
+            method=self.config.relaxation,
+            neighbours=[pair for part in parts for pair in part.neighbours],
+            chi2_before=None,
+            chi2_after=None,
+            seconds=sum(part.seconds for part in parts),
+        )
 
     def _make_report(self) -> PipelineReport:
         r = self.relaxation_result
@@ -515,6 +622,10 @@ class Pipeline:
             max_range=self.max_range(),
             settings=to_jsonable(self.config),
             scan_summaries=list(self.summaries),
+            registered_scans=self.registered - len(self.skipped),
+            skipped_scans=list(self.skipped),
+            failure=self.failure,
+            components=[list(c) for c in self.components],
         )
 
 
