@@ -93,7 +93,8 @@ def match(
     guess: Annotated[
         str,
         typer.Option(
-            help="Octree cube search before ICP: auto (when poses are missing or ICP fits poorly), octree, none."
+            help="Start search before ICP: auto (octree search when poses are missing or ICP fits poorly, then the "
+            "FPFH+RANSAC feature guess if that fits poorly too), octree, features, none."
         ),
     ] = "auto",
     method: Annotated[
@@ -134,6 +135,11 @@ def match(
         f"ICP: {len(result.icp.iterations)} iterations, {result.icp.pairs} pairs, "
         f"rms {result.icp.rms * 100:.2f} cm, converged={result.icp.converged}"
     )
+    if len(result.attempts) > 1 or result.winner != "start":
+        tries = ", ".join(
+            f"{a.source} (fitness {a.fitness:.2f})" if not a.error else f"{a.source} (failed)" for a in result.attempts
+        )
+        err.print(f"starts tried: {tries}; kept: {result.winner}")
     if trace is not None:
         write_trace(trace, result)
 
