@@ -292,6 +292,9 @@ def run(
     ] = "point_to_plane",
     max_distance: Annotated[float, typer.Option(help="ICP max point-pair distance, metres.")] = 0.25,
     guess: Annotated[str, typer.Option(help="Octree initial guess: auto, always or never.")] = "auto",
+    feature_guess: Annotated[
+        bool, typer.Option(help="Try the FPFH+RANSAC feature guess when ICP still fits poorly after the octree search.")
+    ] = True,
     loops: Annotated[bool, typer.Option(help="Detect loops.")] = True,
     loop_closing: Annotated[bool, typer.Option(help="Close detected loops by error diffusion.")] = True,
     relaxation: Annotated[str, typer.Option(help="Global relaxation: lum, simultaneous or none.")] = "lum",
@@ -316,6 +319,7 @@ def run(
             metascan_scans=metascan_scans,
             icp=ICPConfig(max_distance=max_distance, method=method),
             octree_guess=guess,
+            feature_guess=feature_guess,
             loops=loops,
             loop_closing=loop_closing,
             relaxation=relaxation,

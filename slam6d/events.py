@@ -38,6 +38,7 @@ class ScanStarted:
     initial: Matrix  # world_from_scan ICP starts from
     guess: GuessResult | None
     model_indices: list[int]
+    source: str = "start"  # where ``initial`` came from: start (prediction), octree or features
 
 
 @dataclass
@@ -95,6 +96,8 @@ class ScanSummary:
     converged: bool = False
     octree_guess: bool = False
     seconds: float = 0.0
+    start: str = "start"  # the start the kept ICP result came from: start (prediction), octree or features
+    starts_tried: list[str] = field(default_factory=list)
     registered: bool = True  # False: no start gave ICP enough pairs; the scan kept its predicted pose
     failure: str = ""  # why it was not registered
 

@@ -50,6 +50,7 @@ from slam6d.events import (
     ScanSummary,
     StageFailure,
 )
+from slam6d.features import feature_guess
 from slam6d.geometry import Matrix, invert
 from slam6d.icp import ICPConfig, ICPIteration, ICPResult, icp_iterations
 from slam6d.initial_guess import GuessResult, OctreeSearchConfig, extrapolate_odometry, octree_guess
@@ -110,6 +111,8 @@ class PipelineConfig:
     millimetre there buys nothing (benchmark loop: 15 % less registration time than at 0.5 mm, ATE
     after relaxation 0.187 cm either way; BALM hall RPE 0.53 cm either way).
     ``max_range`` (the laser's reach) bounds loop hypotheses; None estimates it from the scans.
+    ``feature_guess`` lets a scan whose ICP still fits poorly after the octree search try the global
+    FPFH + RANSAC guess (:mod:`slam6d.features`) too (not with ``octree_guess="never"``).
     """
 
     voxel_size: float = 0.1
@@ -128,6 +131,7 @@ class PipelineConfig:
     registration_epsilon: float = 1e-3
     min_fitness: float = MIN_FITNESS
     guess: OctreeSearchConfig | None = None
+    feature_guess: bool = True
     loop: LoopConfig = field(default_factory=LoopConfig)
     relax: RelaxationConfig = field(default_factory=RelaxationConfig)
 
@@ -421,6 +425,11 @@ class Pipeline:
         result.transform = prev @ result.transform
         return result
 
+    def _feature_guess(self, index: int) -> Matrix:
+        """The global FPFH + RANSAC guess against the previous scan, in world coordinates."""
+        prev = self.poses[index - 1]
+        return prev @ feature_guess(self.models.points[index - 1], self.models.points[index]).transform
+
     def _run_icp(
         self, index: int, model: ModelIndex, world_from_model: Matrix, start_world: Matrix
     ) -> Generator[Event, None, Outcome]:
@@ -438,22 +447,46 @@ class Pipeline:
             return exc
         return ICPResult.from_iterations(iterations, len(data), self._icp_config.method, world_from_model)
 
+    def _search_first(self, index: int) -> bool:
+        """Whether the octree search runs before the first ICP of scan ``index``: always with
+        ``octree_guess="always"``; with ``auto`` only when there is neither odometry nor a previous
+        motion to extrapolate (the second scan, or the one after a scan that could not be registered).
+        Otherwise ICP starts from the prediction and the searches run only if its fit is poor: a
+        search costs more than the ICP it spares, and a good prediction is worth more than a search."""
+        if self.config.octree_guess != "auto":
+            return self.config.octree_guess == "always"
+        motion_known = index >= 2 and (index - 1) not in self.skipped
+        return not self.has_odometry[index] and not motion_known
+
     def _register(self, index: int) -> Iterator[Event]:
+        """ICP from the prediction (odometry, else constant velocity); when it fits poorly (or fails),
+        ICP again from the octree winner and then from the feature guess, keeping the best fit."""
         began = time.perf_counter()
         cfg = self.config
         start = predicted = self._start_pose(index)
         guess = None
-        if cfg.octree_guess == "always" or (cfg.octree_guess == "auto" and not self.has_odometry[index]):
+        source = "start"
+        if self._search_first(index):
             guess = self._guess(index, start)
-            start = guess.transform
+            start, source = guess.transform, "octree"
         model, world_from_model, members = self._model(index)
-        yield ScanStarted(index, start.copy(), guess, members)
+        yield ScanStarted(index, start.copy(), guess, members, source)
         outcome = yield from self._run_icp(index, model, world_from_model, start)
+        tries: list[tuple[str, Outcome]] = [(source, outcome)]
         if is_poor(outcome, cfg.min_fitness) and cfg.octree_guess == "auto" and guess is None:
             guess = self._guess(index, start)
-            yield ScanStarted(index, guess.transform.copy(), guess, members)
+            yield ScanStarted(index, guess.transform.copy(), guess, members, "octree")
             second = yield from self._run_icp(index, model, world_from_model, guess.transform)
+            tries.append(("octree", second))
             outcome = better_fit(outcome, second)
+        if is_poor(outcome, cfg.min_fitness) and cfg.feature_guess and cfg.octree_guess != "never":
+            features = self._feature_guess(index)
+            yield ScanStarted(index, features.copy(), None, members, "features")
+            third = yield from self._run_icp(index, model, world_from_model, features)
+            tries.append(("features", third))
+            outcome = better_fit(outcome, third)
+        self.summaries[index].start = next(name for name, tried in tries if tried is outcome)
+        self.summaries[index].starts_tried = [name for name, _ in tries]
         summary = self.summaries[index]
         if isinstance(outcome, RegistrationError):
             # the run goes on from the prediction: the scans after it still register among themselves,
