@@ -86,3 +86,24 @@ def test_match_features_mode_needs_no_start() -> None:
 _NO_REACH = __import__("slam6d.initial_guess", fromlist=["OctreeSearchConfig"]).OctreeSearchConfig(
     cube_sizes=(0.1,), translation_range=(0.0, 0.0, 0.0), yaw_range=0.0, tilt_range=0.0
 )
+
+
+def test_indoor_vlp16_walk_without_odometry_registers_end_to_end() -> None:
+    """A hand-held VLP-16 walk through the simulated hall and rooms, no odometry, turns of 30-46°
+    between some scans: every scan registers, and the trajectory stays within 15 cm of the truth."""
+    from slam6d.metrics import absolute_trajectory_error
+    from slam6d.pipeline import Pipeline, PipelineConfig
+
+    sim = simulated_loop(
+        scans=40, points=None, seed=2, first=10, sensor="vlp16", world="indoor", motion="handheld", odometry=False
+    )
+    turns = [math.degrees(pose_difference(invert(a) @ b, np.eye(4))[1]) for a, b in zip(sim.truth, sim.truth[1:])]
+    assert max(turns) > 40 and sum(t > 30 for t in turns) >= 3  # the session is as hard as intended
+    pipeline = Pipeline(sim.sequence, PipelineConfig())
+    report = pipeline.run()
+    assert report.failure is None and report.skipped_scans == [] and report.registered_scans == 10
+    truth = [invert(sim.truth[0]) @ pose for pose in sim.truth]
+    assert absolute_trajectory_error(pipeline.poses, truth).rmse < 0.15
+    for k in range(1, 10):
+        _, radians = pose_difference(invert(pipeline.poses[k - 1]) @ pipeline.poses[k], invert(truth[k - 1]) @ truth[k])
+        assert math.degrees(radians) < 3.0, k
