@@ -569,7 +569,13 @@ class Pipeline:
         disconnected: DisconnectedGraphError | None = None
         try:
             result = relax(
-                self.models, self.poses, fixed=(0,), config=self.config.relax, progress=record, cancel=self._cancel
+                self.models,
+                self.poses,
+                fixed=(0,),
+                config=self.config.relax,
+                progress=record,
+                cancel=self._cancel,
+                links=self.links,  # a sequential registration is an edge, however sparse the overlap
             )
         except DisconnectedGraphError as error:
             disconnected = error
@@ -611,6 +617,7 @@ class Pipeline:
                     members=component,
                     progress=record,
                     cancel=self._cancel,
+                    links=self.links,
                 )
             except Cancelled:
                 raise

@@ -3,6 +3,7 @@ fallback and the pipeline without odometry (the sensors, worlds and motions of `
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
@@ -97,7 +98,7 @@ def test_indoor_vlp16_walk_without_odometry_registers_end_to_end() -> None:
     sim = simulated_loop(
         scans=40, points=None, seed=2, first=10, sensor="vlp16", world="indoor", motion="handheld", odometry=False
     )
-    turns = [math.degrees(pose_difference(invert(a) @ b, np.eye(4))[1]) for a, b in zip(sim.truth, sim.truth[1:])]
+    turns = [math.degrees(pose_difference(invert(a) @ b, np.eye(4))[1]) for a, b in itertools.pairwise(sim.truth)]
     assert max(turns) > 40 and sum(t > 30 for t in turns) >= 3  # the session is as hard as intended
     pipeline = Pipeline(sim.sequence, PipelineConfig())
     report = pipeline.run()
@@ -107,3 +108,21 @@ def test_indoor_vlp16_walk_without_odometry_registers_end_to_end() -> None:
     for k in range(1, 10):
         _, radians = pose_difference(invert(pipeline.poses[k - 1]) @ pipeline.poses[k], invert(truth[k - 1]) @ truth[k])
         assert math.degrees(radians) < 3.0, k
+
+
+def test_a_sequential_registration_is_an_edge_however_sparse_the_overlap() -> None:
+    """With a pair threshold no overlap reaches, the graph holds only the registered consecutive pairs."""
+
+    from slam6d.errors import DisconnectedGraphError
+    from slam6d.lum import lum_relaxation
+    from slam6d.pipeline import Pipeline, PipelineConfig
+    from slam6d.relax import RelaxationConfig
+
+    sim = simulated_loop(scans=8, points=20000, seed=1, first=4, loop_length=16.0, loop_width=10.0)
+    strict = RelaxationConfig(min_pairs=10**9)
+    pipeline = Pipeline(sim.sequence, PipelineConfig(loops=False, relax=strict))
+    report = pipeline.run()
+    assert report.failure is None and pipeline.links == [(0, 1), (1, 2), (2, 3)]
+    assert report.neighbour_pairs == 3
+    with pytest.raises(DisconnectedGraphError):  # the same graph without the registrations' links
+        lum_relaxation(pipeline.models, pipeline.poses, config=strict)
