@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from app.editing.graph import graph_edge_list
 from slam6d.geometry import FrameConvention, Matrix
 from slam6d.io.frames import FrameType, write_sequence_frames
 from slam6d.io.ply import write_ply
@@ -34,14 +35,6 @@ def _written(write: Callable[[Path], Any], suffix: str) -> bytes:
         return path.read_bytes()
 
 
-def graph_edges(count: int, graph: dict[str, Any]) -> list[tuple[int, int, str]]:
-    """Sequential edges plus the loops of a revision's graph, minus edges removed by hand."""
-    removed = {tuple(sorted(e)) for e in graph.get("removed", [])}
-    edges = [(i, i + 1, "sequential") for i in range(count - 1)]
-    edges += [(int(e["i"]), int(e["j"]), str(e.get("kind", "loop"))) for e in graph.get("loops", [])]
-    return [e for e in edges if tuple(sorted(e[:2])) not in removed]
-
-
 def export_poses(
     poses: Sequence[Matrix],
     format_name: str,
@@ -57,7 +50,8 @@ def export_poses(
         return _written(lambda p: write_tum_poses(p, native), ".txt"), "text/plain", "poses_tum.txt"
     if format_name == "g2o":
         edges = [
-            (i, j, relative_pose(native[i], native[j]), np.eye(6)) for i, j, _ in graph_edges(len(native), graph or {})
+            (e["i"], e["j"], relative_pose(native[e["i"]], native[e["j"]]), np.eye(6))
+            for e in graph_edge_list(len(native), graph or {})
         ]
         return _written(lambda p: write_g2o(p, native, edges), ".g2o"), "text/plain", "graph.g2o"
     if format_name == "frames":

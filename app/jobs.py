@@ -1,7 +1,8 @@
 """Background jobs: long engine work runs in a thread and reports progress; anyone may cancel it.
 
 A job is a function ``work(progress, cancel) -> dict``: it calls ``progress(stage, done, total)``
-as it goes and polls ``cancel()`` between steps (the engine's own convention). Jobs of one session
+as it goes and polls ``cancel()`` between steps, raising :class:`slam6d.errors.Cancelled` when it
+turns true (the engine's own convention, so an engine call stopped inside a job ends it as cancelled). Jobs of one session
 run one at a time, because they all edit the same poses; the table keeps finished jobs so a
 browser that reconnects can still see how the last run ended.
 """
@@ -16,19 +17,12 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from slam6d.errors import Slam6dError
+from app.errors import JobConflictError
+from slam6d.errors import Cancelled, Slam6dError
 
 Progress = Callable[[str, int, int], None]
 Cancel = Callable[[], bool]
 Work = Callable[[Progress, Cancel], dict[str, Any]]
-
-
-class JobCancelledError(Exception):
-    """Raised by a job's work function when it noticed the cancel request."""
-
-
-class JobConflictError(Exception):
-    """Another job is already running on this session."""
 
 
 @dataclass
@@ -124,11 +118,7 @@ class JobManager:
             job.result = work(progress, job._cancel.is_set) or {}
             job.status = "done"
         except Exception as exc:
-            if (
-                job._cancel.is_set()
-                or isinstance(exc, JobCancelledError)
-                or type(exc).__name__ in ("Cancelled", "CancelledError")
-            ):
+            if job._cancel.is_set() or isinstance(exc, Cancelled):
                 job.status, job.message = "cancelled", "cancelled"
             else:
                 job.status = "failed"

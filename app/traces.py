@@ -19,7 +19,8 @@ from typing import Any
 
 import numpy as np
 
-from app.workbench import EditError
+from app.errors import EditError
+from slam6d.events import Event, ScanRegistered, ScanStarted
 from slam6d.session import Session
 from slam6d.trace import read_trace, to_jsonable, write_trace
 
@@ -27,11 +28,10 @@ TRACE_DIR = "traces"
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,99}$")
 
 
-def compact_event(event: Any) -> dict[str, Any]:
+def compact_event(event: Event) -> dict[str, Any]:
     """One pipeline event as JSON with its type name; heavy parts replaced by what a replay needs."""
-    kind = type(event).__name__
-    data: dict[str, Any] = {"type": kind}
-    if kind == "ScanStarted":
+    data: dict[str, Any] = {"type": type(event).__name__}  # the stored name a replay reads back
+    if isinstance(event, ScanStarted):
         guess = event.guess
         data.update(
             index=int(event.index),
@@ -41,7 +41,7 @@ def compact_event(event: Any) -> dict[str, Any]:
             if guess is None
             else {"transform": to_jsonable(guess.transform), "score": int(guess.score), "seconds": guess.seconds},
         )
-    elif kind == "ScanRegistered":
+    elif isinstance(event, ScanRegistered):
         result = {k: v for k, v in to_jsonable(event.result).items() if k != "iterations"}
         data.update(index=int(event.index), pose=to_jsonable(event.pose), result=result)
     else:
@@ -55,7 +55,7 @@ class TraceRecorder:
     def __init__(self) -> None:
         self.events: list[dict[str, Any]] = []
 
-    def add(self, event: Any) -> None:
+    def add(self, event: Event) -> None:
         self.events.append(compact_event(event))
 
     def attach(self, pipeline: Any) -> Any:

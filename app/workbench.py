@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from app.errors import EditError, UnknownSessionError, UploadError
 from app.jobs import JobManager
 from slam6d.errors import SessionError, Slam6dError
 from slam6d.geometry import Matrix
@@ -27,26 +28,6 @@ from slam6d.session import SESSION_FILE, Session
 
 _ID = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,99}$")
 _UPLOAD_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,199}$")
-
-
-class EditError(Slam6dError):
-    """An edit cannot be made; ``status`` is the HTTP status that fits (404 unknown item, 409 conflict)."""
-
-    def __init__(self, message: str, status: int = 409) -> None:
-        self.status = status
-        super().__init__(message)
-
-
-class UnknownSessionError(LookupError):
-    pass
-
-
-class UploadError(Slam6dError):
-    """An upload was refused; ``status`` is the HTTP status that fits (413 too large, 422 invalid)."""
-
-    def __init__(self, message: str, status: int = 422) -> None:
-        self.status = status
-        super().__init__(message)
 
 
 @dataclass
@@ -89,6 +70,7 @@ class Workbench:
         self._states: dict[str, SessionState] = {}
         self._lock = threading.Lock()
         self._revision_listeners: list[Callable[[str], None]] = []
+        self._camera_path_listeners: list[Callable[[str], None]] = []
 
     # -------------------------------------------------------------- sessions
 
@@ -99,6 +81,14 @@ class Workbench:
     def _changed(self, session_id: str) -> None:
         self.state(session_id).apply_head()
         for listener in self._revision_listeners:
+            listener(session_id)
+
+    def on_camera_path(self, listener: Callable[[str], None]) -> None:
+        """``listener(session_id)`` runs after a session's saved camera path changed (from any browser or REST)."""
+        self._camera_path_listeners.append(listener)
+
+    def camera_path_changed(self, session_id: str) -> None:
+        for listener in self._camera_path_listeners:
             listener(session_id)
 
     def notify(self, session_id: str) -> None:
@@ -196,12 +186,22 @@ class Workbench:
         return rev
 
     def undo(self, session_id: str, author: str) -> int:
-        rev = self.state(session_id).session.journal.undo(author)
+        """Step back one revision; EditError (409) when there is nothing to undo."""
+        journal = self.state(session_id).session.journal
+        try:
+            rev = journal.undo(author)
+        except SessionError as exc:
+            raise EditError(str(exc)) from None
         self._changed(session_id)
         return rev
 
     def redo(self, session_id: str, author: str) -> int:
-        rev = self.state(session_id).session.journal.redo(author)
+        """Step forward one revision; EditError (409) when there is nothing to redo."""
+        journal = self.state(session_id).session.journal
+        try:
+            rev = journal.redo(author)
+        except SessionError as exc:
+            raise EditError(str(exc)) from None
         self._changed(session_id)
         return rev
 
@@ -234,4 +234,4 @@ def _expand(filename: str, content: bytes, limit: int) -> list[tuple[str, bytes]
     return [(base, content)]
 
 
-__all__ = ["EditError", "SessionError", "SessionState", "UnknownSessionError", "UploadError", "Workbench"]
+__all__ = ["SessionState", "Workbench"]

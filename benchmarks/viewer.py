@@ -55,7 +55,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from app import scene  # noqa: E402
+from app.view import display as view_display  # noqa: E402
 from slam6d.geometry import pose_from_xyzrpy  # noqa: E402
 from slam6d.session import CACHE_DIR, Session  # noqa: E402
 from slam6d.simulate import SimulationConfig, simulate_session  # noqa: E402
@@ -245,7 +245,7 @@ def main() -> None:
         Session.create(root / SESSION_ID, "Benchmark", scans_dir, engine=engine)
         (root / SESSION_ID / CACHE_DIR).mkdir()
         shutil.copy(parsed, root / SESSION_ID / CACHE_DIR / "scans.npz")  # a session opened before
-        display = parsed.with_name(f"display-{args.budget or scene.DEFAULT_BUDGET}.npz")
+        display = parsed.with_name(f"display-{args.budget or view_display.DEFAULT_BUDGET}.npz")
         reopened = display.exists()  # its view too: the point selection is remembered
         if reopened:
             shutil.copy(display, root / SESSION_ID / CACHE_DIR / "display.npz")

@@ -28,6 +28,14 @@ class EmptyScanError(Slam6dError):
         super().__init__(f"{self.path}: scan has no usable points{': ' + detail if detail else ''}")
 
 
+class Cancelled(Slam6dError):  # noqa: N818 - reads as "the run was cancelled"
+    """The caller's ``cancel()`` check turned true; the step stopped and kept nothing half-done.
+
+    One type for every long engine call (pipeline runs, relaxation, renders) and the workbench's
+    jobs, so a cancelled job is recognised by its type wherever it was stopped.
+    """
+
+
 class RegistrationError(Slam6dError):
     """Registration could not produce a result (e.g. no point pairs within the max distance)."""
 

@@ -32,7 +32,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import NDArray
 
-from slam6d.errors import RegistrationError
+from slam6d.errors import Cancelled, RegistrationError
 from slam6d.geometry import (
     Matrix,
     invert,
@@ -44,7 +44,8 @@ from slam6d.geometry import (
 )
 from slam6d.icp import ICPConfig, icp
 from slam6d.model import ModelIndex
-from slam6d.octree import Occupancy
+from slam6d.octree import Occupancy, Octree
+from slam6d.relax import ScanModels
 
 FloatArray = NDArray[np.float64]
 
@@ -298,3 +299,42 @@ def diffuse_loop_correction(
         partial = make_pose(r, pivot + f * shift - r @ pivot)
         out[k] = partial @ poses[k]
     return out
+
+
+def detect_loops(
+    models: ScanModels,
+    poses: Sequence[Matrix],
+    config: LoopConfig = LoopConfig(),
+    max_range: float | None = None,
+    progress: Callable[[int, int], None] | None = None,
+    cancel: Callable[[], bool] | None = None,
+) -> list[LoopHypothesis]:
+    """Loop hypotheses over a whole trajectory at once, the best per newer scan verified by ICP.
+
+    What a person asks for after a run ("find the loops from these poses"), unlike the pipeline's
+    online loop stage, which looks back from each new scan as it arrives. ``max_range`` None
+    estimates the laser's reach as the pipeline does: a typical scan's extent.
+    ``progress(done, total)`` counts verified hypotheses; :class:`~slam6d.errors.Cancelled` when
+    ``cancel()`` turns true.
+    """
+    cube = config.overlap_cube
+    occupancies: dict[int, Occupancy] = {}
+
+    def occupancy(k: int) -> Occupancy:
+        if k not in occupancies:
+            occupancies[k] = Octree(models.points[k], cube).occupancy(cube)
+        return occupancies[k]
+
+    reach = max_range or float(np.median([models.extent(k) for k in range(len(models))]))
+    best: dict[int, LoopHypothesis] = {}
+    for hyp in find_loop_hypotheses(poses, reach, config, occupancy, models.points):  # best first per newer scan
+        best.setdefault(hyp.j, hyp)
+    chosen = [best[j] for j in sorted(best)]
+    verified = []
+    for n, hyp in enumerate(chosen):
+        if cancel is not None and cancel():
+            raise Cancelled("loop detection cancelled")
+        verified.append(verify(hyp, models.index(hyp.i), models.points[hyp.j], models.config, config))
+        if progress is not None:
+            progress(n + 1, len(chosen))
+    return verified

@@ -28,7 +28,7 @@ import numba
 import numpy as np
 from numpy.typing import NDArray
 
-from slam6d.errors import RelaxationError, Slam6dError
+from slam6d.errors import Cancelled, RelaxationError
 from slam6d.geometry import Matrix, invert
 from slam6d.icp import ICPConfig
 from slam6d.model import ModelIndex
@@ -48,10 +48,6 @@ __all__ = [
     "neighbour_pairs",
     "pair_residual",
 ]
-
-
-class Cancelled(Slam6dError):  # noqa: N818 - reads as "the run was cancelled"
-    """The caller asked to stop (the workbench's cancel button)."""
 
 
 @dataclass(frozen=True)

@@ -31,7 +31,7 @@ import numpy as np
 from numba import njit, prange
 from numpy.typing import NDArray
 
-from slam6d.errors import Slam6dError
+from slam6d.errors import Cancelled, Slam6dError
 from slam6d.geometry import Matrix, invert
 from slam6d.point_scene import COLOR_MODES, PointScene, ProgressFn, point_colors
 from slam6d.video import FrameSink
@@ -49,7 +49,7 @@ _DEPTH_UNITS_PER_METRE = 1.0e5
 _EMPTY_KEY = np.uint64(0xFFFFFFFFFFFFFFFF)
 
 
-class RenderCancelledError(Slam6dError):
+class RenderCancelledError(Cancelled):
     """The caller's cancel check returned True; no partial output is left behind."""
 
 

@@ -11,6 +11,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from app.server import create_app
+from slam6d.errors import Cancelled
 from slam6d.io.ply import read_ply
 from tests.session_fixtures import corridor_session, true_poses, write_corridor_scans
 
@@ -205,9 +206,7 @@ def test_cancelling_a_job(client):
             progress("waiting", k, 1000)
             gate.set()
             if cancel():
-                from app.jobs import JobCancelledError
-
-                raise JobCancelledError()
+                raise Cancelled("stopped")
             threading.Event().wait(0.01)
         return {}
 

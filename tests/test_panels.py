@@ -50,7 +50,7 @@ def test_replay_moves_the_scans_to_the_stored_run_poses(viewer):
 
 
 def test_gizmo_move_and_displacement_colours(viewer):
-    edit, loops = panel(viewer, "EditPanel"), panel(viewer, "LoopsPanel")
+    edit, loops = panel(viewer, "EdgesPanel"), panel(viewer, "LoopsPanel")
     edit.scan_a.value = 1
     edit.drag.value = True
     edit._toggle_gizmo()
@@ -58,7 +58,7 @@ def test_gizmo_move_and_displacement_colours(viewer):
     edit._move(Click(), refine=False)
     session = viewer.state.session
     assert session.revision == 1 and session.journal.entries()[-1].kind == "manual_move"
-    assert "residuals jumped" in viewer.warnings.content  # the guardrail is on screen
+    assert "residuals jumped" in viewer.controls.warnings.content  # the guardrail is on screen
     loops.by_displacement.value = True
     loops._colour()
     assert set(viewer.highlight) == {0, 1, 2}

@@ -5,26 +5,28 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from app import scene
+from app.view import display
+from app.view.panels.edges import EdgesPanel
+from app.view.picking import pick_scan
 from slam6d.geometry import pose_from_xyzrpy
 
 
 def test_budget_selection_keeps_the_map_within_budget_and_uses_real_points():
     rng = np.random.default_rng(0)
     clouds = [rng.uniform(-10, 10, (50_000, 3)) for _ in range(4)]
-    selection = scene.budget_selection(clouds, budget=20_000, voxel_size=0.05)
+    selection = display.budget_selection(clouds, budget=20_000, voxel_size=0.05)
     assert sum(len(s) for s in selection) <= 20_000
     assert all(len(s) == 5_000 for s in selection)  # dense clouds fill their share
     assert all(np.all(np.diff(s) > 0) for s in selection)  # real, distinct points in scan order
     # a coarse voxel gives fewer points than the cap: one per occupied voxel
-    coarse = scene.budget_selection(clouds, budget=1_000_000, voxel_size=5.0)
+    coarse = display.budget_selection(clouds, budget=1_000_000, voxel_size=5.0)
     assert all(len(s) <= 64 for s in coarse)
 
 
 def test_coarse_selection_covers_every_scan_within_the_coarse_budget():
     rng = np.random.default_rng(3)
     clouds = [rng.uniform(-10, 10, (n, 3)) for n in (60_000, 30_000, 500)]
-    coarse = scene.coarse_selection(clouds, budget=30_000)
+    coarse = display.coarse_selection(clouds, budget=30_000)
     assert sum(len(s) for s in coarse) <= 30_000
     assert [len(s) for s in coarse] == [10_000, 10_000, 500]  # every scan is in the first look, small ones whole
     assert all(np.all(np.diff(s) > 0) and s[-1] < len(c) for s, c in zip(coarse, clouds, strict=True))
@@ -37,58 +39,58 @@ def test_cached_budget_selection_reuses_only_for_the_same_scans(tmp_path, monkey
     rng = np.random.default_rng(2)
     clouds = [rng.uniform(-10, 10, (20_000, 3)) for _ in range(3)]
     cache = tmp_path / "cache" / "display.npz"
-    assert scene.remembered_selection(cache, clouds, budget=9_000, voxel_size=0.05) is None
-    first = scene.cached_budget_selection(cache, clouds, budget=9_000, voxel_size=0.05)
+    assert display.remembered_selection(cache, clouds, budget=9_000, voxel_size=0.05) is None
+    first = display.cached_budget_selection(cache, clouds, budget=9_000, voxel_size=0.05)
     assert cache.exists()
-    remembered = scene.remembered_selection(cache, clouds, budget=9_000, voxel_size=0.05)
+    remembered = display.remembered_selection(cache, clouds, budget=9_000, voxel_size=0.05)
     assert remembered is not None and all(np.array_equal(a, b) for a, b in zip(first, remembered, strict=True))
-    assert scene.remembered_selection(cache, clouds, budget=8_000, voxel_size=0.05) is None
-    expected = scene.budget_selection(clouds, budget=9_000, voxel_size=0.05)
+    assert display.remembered_selection(cache, clouds, budget=8_000, voxel_size=0.05) is None
+    expected = display.budget_selection(clouds, budget=9_000, voxel_size=0.05)
     assert all(np.array_equal(a, b) for a, b in zip(first, expected, strict=True))
 
     def no_recompute(*args, **kwargs):  # type: ignore[no-untyped-def]
         raise AssertionError("recomputed although nothing changed")
 
-    monkeypatch.setattr(scene, "budget_selection", no_recompute)
-    again = scene.cached_budget_selection(cache, clouds, budget=9_000, voxel_size=0.05)
+    monkeypatch.setattr(display, "budget_selection", no_recompute)
+    again = display.cached_budget_selection(cache, clouds, budget=9_000, voxel_size=0.05)
     assert all(np.array_equal(a, b) for a, b in zip(again, expected, strict=True))
     monkeypatch.undo()
     moved = [clouds[0], clouds[1] + 1.0, clouds[2]]  # one scan changed: its choice must be recomputed
-    changed = scene.cached_budget_selection(cache, moved, budget=9_000, voxel_size=0.05)
-    assert all(np.array_equal(a, b) for a, b in zip(changed, scene.budget_selection(moved, 9_000, 0.05), strict=True))
-    smaller = scene.cached_budget_selection(cache, moved, budget=3_000, voxel_size=0.05)
+    changed = display.cached_budget_selection(cache, moved, budget=9_000, voxel_size=0.05)
+    assert all(np.array_equal(a, b) for a, b in zip(changed, display.budget_selection(moved, 9_000, 0.05), strict=True))
+    smaller = display.cached_budget_selection(cache, moved, budget=3_000, voxel_size=0.05)
     assert sum(len(s) for s in smaller) <= 3_000
     cache.write_bytes(b"damaged")
-    assert sum(len(s) for s in scene.cached_budget_selection(cache, moved, budget=3_000, voxel_size=0.05)) <= 3_000
+    assert sum(len(s) for s in display.cached_budget_selection(cache, moved, budget=3_000, voxel_size=0.05)) <= 3_000
 
 
 def test_far_from_origin_local_points_are_never_sent_as_float16():
     near = np.array([[0.0, 0.0, 0.0], [31.0, -5.0, 2.0]])
-    assert scene.precision_for(near) == "float16"
-    assert scene.precision_for(near + np.array([1000.0, 0, 0])) == "float32"
+    assert display.precision_for(near) == "float16"
+    assert display.precision_for(near + np.array([1000.0, 0, 0])) == "float32"
 
 
 def test_residuals_measure_disagreement_between_scans():
     rng = np.random.default_rng(1)
     plane = np.column_stack([rng.uniform(0, 5, 4000), rng.uniform(0, 5, 4000), np.zeros(4000)])
-    same = scene.residuals([plane, plane], [np.eye(4), np.eye(4)])
+    same = display.residuals([plane, plane], [np.eye(4), np.eye(4)])
     assert np.nanmax(same[0]) == pytest.approx(0.0, abs=1e-9)
-    lifted = scene.residuals([plane, plane], [np.eye(4), pose_from_xyzrpy(0, 0, 0.2, 0, 0, 0)])
+    lifted = display.residuals([plane, plane], [np.eye(4), pose_from_xyzrpy(0, 0, 0.2, 0, 0, 0)])
     assert np.nanmedian(lifted[1]) == pytest.approx(0.2, abs=0.01)
-    apart = scene.residuals([plane, plane[:10]], [np.eye(4), pose_from_xyzrpy(100, 0, 0, 0, 0, 0)])
+    apart = display.residuals([plane, plane[:10]], [np.eye(4), pose_from_xyzrpy(100, 0, 0, 0, 0, 0)])
     assert np.isnan(apart[1]).all()  # no overlap: no residual (drawn grey), rather than a misleading number
 
 
 def test_ramp_and_scan_colours():
-    colours = scene.ramp(np.array([0.0, 1.0, np.nan]), 0.0, 1.0)
+    colours = display.ramp(np.array([0.0, 1.0, np.nan]), 0.0, 1.0)
     assert colours.dtype == np.uint8 and tuple(colours[2]) == (150, 150, 150)
     assert not np.array_equal(colours[0], colours[1])
-    assert len({scene.scan_color(k) for k in range(20)}) == 20
+    assert len({display.scan_color(k) for k in range(20)}) == 20
 
 
 def test_segments_are_relative_to_the_first_scan():
     poses = [pose_from_xyzrpy(1e5 + k, 2e5, 0, 0, 0, 0) for k in range(3)]
-    seg = scene.segments([(0, 1), (1, 2)], poses)
+    seg = display.segments([(0, 1), (1, 2)], poses)
     assert seg.dtype == np.float32 and seg.shape == (2, 2, 3)
     np.testing.assert_allclose(seg[1], [[1, 0, 0], [2, 0, 0]])
 
@@ -104,9 +106,9 @@ def _box_room(rng: np.random.Generator, count: int) -> np.ndarray:
 
 
 def test_an_edge_whose_scans_disagree_gets_a_clearly_worse_colour():
-    from app.editing import residual_summary
     from slam6d.icp import ICPConfig
     from slam6d.relax import ScanModels
+    from slam6d.residuals import residual_summary
 
     rng = np.random.default_rng(4)
     room = _box_room(rng, 60_000)
@@ -118,16 +120,16 @@ def test_an_edge_whose_scans_disagree_gets_a_clearly_worse_colour():
     good, bad = (e["plane"] for e in summary.edges)
     assert good < 0.01 and bad > 0.04
     scale = ICPConfig().max_distance / 4  # the viewer's edge scale
-    colours = scene.edge_colours([good, bad, np.nan], scale)
+    colours = display.edge_colours([good, bad, np.nan], scale)
     assert colours.shape == (3, 2, 3) and colours.dtype == np.uint8
     assert np.array_equal(colours[:, 0], colours[:, 1])  # one colour per edge, both ends
     position = np.linspace(0, scale, 101)  # where on the edge scale each colour sits
-    ramp = scene.edge_colours(position, scale)[:, 0].astype(int)
+    ramp = display.edge_colours(position, scale)[:, 0].astype(int)
     where = [position[np.abs(ramp - c.astype(int)).sum(axis=1).argmin()] for c in colours[:, 0]]
     assert where[0] < 0.25 * scale and where[1] > where[0] + 0.3 * scale
-    top = scene.edge_colours([scale], scale)[0, 0]
+    top = display.edge_colours([scale], scale)[0, 0]
     assert np.array_equal(colours[2, 0], top)  # no overlap at all is the top of the scale, not "no data"
-    assert len({tuple(c) for c in ramp}) <= scene.EDGE_SHADES + 1  # a few shades, one line node each
+    assert len({tuple(c) for c in ramp}) <= display.EDGE_SHADES + 1  # a few shades, one line node each
 
 
 def test_pick_scan_takes_the_scan_under_the_cursor_and_in_front():
@@ -139,21 +141,21 @@ def test_pick_scan_takes_the_scan_under_the_cursor_and_in_front():
     def ray_to(target):  # type: ignore[no-untyped-def]
         return camera, np.asarray(target, float) - camera
 
-    assert scene.pick_scan([blob] * 3, poses, *ray_to([10, 0, 0])) == 1
-    assert scene.pick_scan([blob] * 3, poses, *ray_to([20.2, 0.1, 0])) == 2
-    assert scene.pick_scan([blob] * 3, poses, *ray_to([0, 0, 0])) == 0
-    assert scene.pick_scan([blob] * 3, poses, *ray_to([5, 0, 8])) is None  # empty sky between scans
-    assert scene.pick_scan([blob] * 3, poses, camera, camera - np.array([10.0, 0, 0])) is None  # behind the camera
+    assert pick_scan([blob] * 3, poses, *ray_to([10, 0, 0])) == 1
+    assert pick_scan([blob] * 3, poses, *ray_to([20.2, 0.1, 0])) == 2
+    assert pick_scan([blob] * 3, poses, *ray_to([0, 0, 0])) == 0
+    assert pick_scan([blob] * 3, poses, *ray_to([5, 0, 8])) is None  # empty sky between scans
+    assert pick_scan([blob] * 3, poses, camera, camera - np.array([10.0, 0, 0])) is None  # behind the camera
     # two scans on the same line of sight: the nearer one hides the farther one
     behind = [pose_from_xyzrpy(10, 0, 0, 0, 0, 0), pose_from_xyzrpy(10, 15, 0, 0, 0, 0)]
-    assert scene.pick_scan([blob, blob], behind, *ray_to([10, 0, 0])) == 0
-    assert scene.pick_scan([blob, blob], behind[::-1], *ray_to([10, 0, 0])) == 1
+    assert pick_scan([blob, blob], behind, *ray_to([10, 0, 0])) == 0
+    assert pick_scan([blob, blob], behind[::-1], *ray_to([10, 0, 0])) == 1
     # far from the origin (UTM-like coordinates) the local-frame test is just as exact
     offset = np.array([4.5e5, 5.4e6, 0.0])
     far = [p.copy() for p in poses]
     for p in far:
         p[:3, 3] += offset
-    assert scene.pick_scan([blob] * 3, far, camera + offset, np.array([10.0, 0, 0]) - camera) == 1
+    assert pick_scan([blob] * 3, far, camera + offset, np.array([10.0, 0, 0]) - camera) == 1
 
 
 @pytest.fixture
@@ -187,7 +189,7 @@ def test_the_view_recolours_an_edge_when_a_scan_moves_off(corridor_view):
     view = corridor_view
     before = _edge_colours_when_computed(view)
     assert np.abs(before[0].astype(int) - before[1]).max() <= 10  # both edges agree about as well
-    assert "worst" in view.edge_legend.content
+    assert "worst" in view.controls.edge_legend.content
     moved = [p.copy() for p in view.poses]
     moved[2] = moved[2] @ pose_from_xyzrpy(0.3, 0.2, 0, 0, 0, 0.05)
     view.set_poses(moved)
@@ -195,11 +197,11 @@ def test_the_view_recolours_an_edge_when_a_scan_moves_off(corridor_view):
     after = _edge_colours_when_computed(view)
     assert np.array_equal(after[0], before[0])  # the untouched edge keeps its colour
     position = np.linspace(0, view.edge_scale, 101)  # where on the edge scale each colour sits
-    ramp = scene.edge_colours(position, view.edge_scale)[:, 0].astype(int)
+    ramp = display.edge_colours(position, view.edge_scale)[:, 0].astype(int)
     where = [position[np.abs(ramp - c.astype(int)).sum(axis=1).argmin()] for c in (after[0], after[1])]
     assert where[1] > where[0] + 0.4 * view.edge_scale  # the moved one: far up the scale
     assert view.edge_residuals[(1, 2)] > 3 * view.edge_residuals[(0, 1)]
-    assert "worst 1–2" in view.edge_legend.content
+    assert "worst 1–2" in view.controls.edge_legend.content
 
 
 class _Click:
@@ -209,10 +211,10 @@ class _Click:
 
 
 def test_clicking_scans_in_the_view_picks_a_then_b_and_highlights_them(corridor_view):
-    from app.panels.edit import PICKED_A, PICKED_B
+    from app.view.panels.edges import PICKED_A, PICKED_B
 
     view = corridor_view
-    edit = next(p for p in view.panels if type(p).__name__ == "EditPanel")
+    edit = next(p for p in view.panels if isinstance(p, EdgesPanel))
     apart = [p.copy() for p in view.poses]
     for k, p in enumerate(apart):
         p[2, 3] += 40.0 * k  # the corridor scans overlap; stack them 40 m apart to click one alone
@@ -231,7 +233,7 @@ def test_clicking_scans_in_the_view_picks_a_then_b_and_highlights_them(corridor_
     assert (
         view.scan_colours(0) == PICKED_B
         and view.scan_colours(2) == PICKED_A
-        and view.scan_colours(1) == scene.scan_color(1)
+        and view.scan_colours(1) == display.scan_color(1)
     )
     assert 0 in painted and 2 in painted
     edit._clicked(_Click(camera, (0.0, -1.0, 0.5)))  # away from the map: nothing picked, nothing changed
@@ -240,7 +242,7 @@ def test_clicking_scans_in_the_view_picks_a_then_b_and_highlights_them(corridor_
 
 def test_playing_draws_the_current_pair_in_full_and_the_rest_light_without_resending(corridor_view, monkeypatch):
     view = corridor_view
-    monkeypatch.setattr(scene, "PLAYBACK_BUDGET", 900)
+    monkeypatch.setattr(display, "PLAYBACK_BUDGET", 900)
     full = [len(p) for p in view.local]
     view.begin_playback([2, 1])
     assert [n.visible for n in view.nodes] == [False, True, True]
@@ -295,7 +297,7 @@ def test_a_reopened_view_reuses_the_display_selection_of_the_first_open(tmp_path
     shown = []
     for attempt in range(2):
         if attempt:
-            monkeypatch.setattr(scene, "budget_selection", _never_recomputed)
+            monkeypatch.setattr(display, "budget_selection", _never_recomputed)
         app = create_app(tmp_path / "sessions")
         view = app.state.viewers.get("corridor")
         assert view.ready.wait(30) and view.error is None
@@ -306,9 +308,9 @@ def test_a_reopened_view_reuses_the_display_selection_of_the_first_open(tmp_path
 
 def test_edge_residual_tells_aligned_sparse_scans_from_misaligned_ones():
     """Sparse scans: closest-point distances grow with the point spacing, the plane residual does not."""
-    from app.editing import residual_summary
     from slam6d.icp import ICPConfig
     from slam6d.relax import ScanModels
+    from slam6d.residuals import residual_summary
 
     rng = np.random.default_rng(5)
     room = _box_room(rng, 60_000)

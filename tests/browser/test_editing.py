@@ -6,6 +6,8 @@ import time
 
 import pytest
 
+from app.view.panels.edges import EdgesPanel
+from app.view.panels.guesses import GuessPanel
 from slam6d.session import Session
 from tests.browser.conftest import viewer_frame
 from tests.browser.test_workbench import open_session
@@ -68,7 +70,7 @@ def test_add_an_edge_and_undo_it(corridor_sessions, live_server, new_browser, ar
     scan_b.fill("3")
     scan_b.press("Enter")
     viewer = server.app.state.viewers.get("corridor")
-    edit = next(p for p in viewer.panels if type(p).__name__ == "EditPanel")
+    edit = next(p for p in viewer.panels if isinstance(p, EdgesPanel))
     wait_until(lambda: int(edit.scan_b.value) == 3, 5, "the number field did not reach the server")
     frame.get_by_role("button", name="Add edge A–B (ICP)").click()
     added = frame.get_by_text("edge 0–3 added", exact=False)
@@ -98,7 +100,7 @@ def test_octree_candidates_are_listed(corridor_sessions, live_server, new_browse
     winner.wait_for(timeout=15_000)  # the winner is marked in the ranked table
     winner.scroll_into_view_if_needed()
     page.screenshot(path=str(artifacts_dir / "workbench_octree_candidates.png"))
-    guess = next(p for p in server.app.state.viewers.get("corridor").panels if type(p).__name__ == "GuessPanel")
+    guess = next(p for p in server.app.state.viewers.get("corridor").panels if isinstance(p, GuessPanel))
     scores = [c["score"] for c in guess.summary["candidates"]]
     assert len(scores) == 10 and scores == sorted(scores, reverse=True)
     assert len(guess.drawn) == 12  # both scans' cubes and ten candidate frames

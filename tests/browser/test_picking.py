@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from app.view.panels.edges import EdgesPanel
 from tests.browser.conftest import viewer_frame
 from tests.browser.test_editing import open_folder, wait_until
 from tests.browser.test_workbench import open_session, wait_for_map
@@ -20,7 +21,7 @@ def test_click_a_scan_in_the_view_selects_it_in_the_edit_panel(
     open_session(page, server, "corridor")
     assert wait_for_map(page) >= 0.01
     viewer = server.app.state.viewers.get("corridor")
-    edit = next(p for p in viewer.panels if type(p).__name__ == "EditPanel")
+    edit = next(p for p in viewer.panels if isinstance(p, EdgesPanel))
     # The corridor scans overlap; lift scan 3 by 30 m so that it alone is under the view's centre.
     poses = [p.copy() for p in viewer.poses]
     poses[3][2, 3] += 30.0

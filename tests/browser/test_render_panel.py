@@ -54,7 +54,7 @@ def test_add_two_keyframes_render_and_download(corridor_sessions, live_server, n
     assert forward @ to_centre / np.linalg.norm(to_centre) > 0.999
     assert not np.allclose(saved[0]["orientation_wxyz"], saved[1]["orientation_wxyz"], atol=1e-3)
     # the preview draws one frustum per keyframe
-    assert len(viewer.render_panel._frustums) == 2
+    assert len(viewer.fly_through._frustums) == 2
     # "Go to" the first keyframe: this browser's camera returns to the first view
     input_of(frame, "Keyframe").click()
     frame.get_by_role("option", name="1", exact=True).click()
@@ -77,7 +77,7 @@ def test_add_two_keyframes_render_and_download(corridor_sessions, live_server, n
     frames_input.fill("10")
     frames_input.press("Enter")
     deadline = time.monotonic() + 5
-    while viewer.render_panel.frames.value != 10 or viewer.render_panel.size.value != "320x240":
+    while viewer.fly_through.frames.value != 10 or viewer.fly_through.size.value != "320x240":
         assert time.monotonic() < deadline, "size/frames did not reach the server"
         time.sleep(0.05)
     frame.get_by_role("button", name="Render video").click()

@@ -8,7 +8,7 @@ import time
 import numpy as np
 
 from app import traces
-from app.panels.host import ViewerHost
+from app.view.panels.host import ViewerHost
 
 _NONE = "—"
 _DATA = (255, 120, 0)
@@ -75,8 +75,7 @@ class ReplayPanel:
                     np.array(viewer.scan_colours(k), np.uint8), (len(viewer.local[k]), 3)
                 )
         if frame.rms_history:
-            h = np.array(frame.rms_history, dtype=np.float64)
-            viewer.plot.data = (h[:, 0], h[:, 1], h[:, 2])
+            viewer.controls.show_icp_history(frame.rms_history)
         self.status.content = f"event {frame.event + 1}/{len(self.frames)}: {frame.text}"
         return True
 

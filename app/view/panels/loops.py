@@ -6,9 +6,10 @@ from typing import Any
 
 import numpy as np
 
-from app import scene
-from app.editing import displacements, editor_for
-from app.panels.host import ViewerHost
+from app.editing import editor_for
+from app.view import display
+from app.view.panels.host import ViewerHost
+from slam6d.residuals import displacements
 
 _NONE = "—"
 
@@ -32,10 +33,12 @@ class LoopsPanel:
             self.by_displacement = gui.add_checkbox("Colour by displacement", False)
             self.legend = gui.add_markdown("")
         run = viewer.run_safely
-        self.detect.on_click(lambda e: run(lambda: self._submit("detect-loops", self.editor.detect_loops_job, e)))
+        self.detect.on_click(lambda e: run(lambda: self._submit("detect-loops", self.editor.loops.detect_job, e)))
         self.accept.on_click(lambda e: run(lambda: self._decide(True, e)))
         self.reject.on_click(lambda e: run(lambda: self._decide(False, e)))
-        self.close.on_click(lambda e: run(lambda: self._submit("close-loops", self.editor.close_loops_job, e)))
+        self.close.on_click(
+            lambda e: run(lambda: self._submit("close-loops", self.editor.relaxation.close_loops_job, e))
+        )
         self.relax.on_click(lambda e: run(lambda: self._relax(e)))
         self.before.on_update(lambda _: run(self._show_before))
         self.by_displacement.on_update(lambda _: run(self._colour))
@@ -47,16 +50,16 @@ class LoopsPanel:
 
     def _relax(self, event: Any) -> None:
         # check_relaxable (inside relax_job) refuses a disconnected graph before any job starts
-        self._submit("relax", self.editor.relax_job, event, method=self.method.value, fixed=[0])
+        self._submit("relax", self.editor.relaxation.relax_job, event, method=self.method.value, fixed=[0])
 
     def _decide(self, accept: bool, event: Any) -> None:
         if self.choice.value == _NONE:
             raise ValueError("choose a loop hypothesis first")
         k = int(self.choice.value.split(":")[0])
-        self.editor.decide_loop(self.session_id, k, accept, self.viewer.author(event))
+        self.editor.loops.decide(self.session_id, k, accept, self.viewer.author(event))
 
     def refresh(self) -> None:
-        listed = self.editor.hypotheses(self.session_id)
+        listed = self.editor.loops.listed(self.session_id)
         if not listed:
             self.table.content = "No loop hypotheses yet: run registration or *Detect loops*."
             self.choice.options = [_NONE]
@@ -97,7 +100,7 @@ class LoopsPanel:
         else:
             moved = np.array(displacements(*self._revisions()))
             top = float(moved.max()) if len(moved) and moved.max() > 0 else 1.0
-            colours = scene.ramp(moved, 0.0, top)
-            viewer.highlight = {k: scene.rgb(colours[k]) for k in range(len(moved))}
+            colours = display.ramp(moved, 0.0, top)
+            viewer.highlight = {k: display.rgb(colours[k]) for k in range(len(moved))}
             self.legend.content = f"Displacement since the parent revision: blue 0 m → red {top:.2f} m"
         viewer.recolour()

@@ -6,9 +6,9 @@ from typing import Any
 
 import numpy as np
 
-from app import scene
 from app.editing import editor_for
-from app.panels.host import ViewerHost
+from app.view import display
+from app.view.panels.host import ViewerHost
 from slam6d.geometry import rotation_to_quaternion
 
 _NONE = "—"
@@ -42,7 +42,7 @@ class GuessPanel:
     def _search(self) -> None:
         self.table.content = "Searching…"
         data = int(self.data.value)
-        summary = self.editor.guess_summary(self.session_id, data, None, int(self.level.value), _TOP)
+        summary = self.editor.guesses.summary(self.session_id, data, None, int(self.level.value), _TOP)
         self.summary = summary
         self.level.max = len(summary["levels"]) - 1
         rows = [
@@ -74,7 +74,7 @@ class GuessPanel:
         poses = viewer.state.session.poses()
         add = viewer.server.scene
         for name, scan, colour in (("model", summary["model"], _MODEL_CUBES), ("data", summary["data"], _DATA_CUBES)):
-            centres = self.editor.occupied_cubes(self.session_id, scan, size).astype(np.float32)
+            centres = self.editor.guesses.occupied_cubes(self.session_id, scan, size).astype(np.float32)
             pose = poses[scan]
             self.drawn.append(
                 add.add_point_cloud(
@@ -89,7 +89,7 @@ class GuessPanel:
                 )
             )
         scores = np.array([c["score"] for c in summary["candidates"]], dtype=np.float64)
-        colours = scene.ramp(scores, float(scores.min()), float(scores.max()))
+        colours = display.ramp(scores, float(scores.min()), float(scores.max()))
         for c, colour in zip(summary["candidates"], colours, strict=True):
             pose = np.asarray(c["pose"])
             self.drawn.append(
@@ -98,7 +98,7 @@ class GuessPanel:
                     axes_length=1.2 if c["winner"] else 0.6,
                     axes_radius=0.04 if c["winner"] else 0.015,
                     origin_radius=0.12 if c["winner"] else 0.06,
-                    origin_color=scene.rgb(colour),
+                    origin_color=display.rgb(colour),
                     position=pose[:3, 3],
                     wxyz=rotation_to_quaternion(pose[:3, :3]),
                 )
@@ -114,7 +114,7 @@ class GuessPanel:
             raise ValueError("search and choose a candidate first")
         rank = int(self.choice.value.split(":")[0])
         s = self.summary
-        out = self.editor.apply_candidate(
+        out = self.editor.guesses.apply(
             self.session_id, s["data"], s["model"], rank, self.viewer.author(event), s["level"]
         )
         self.table.content += f"\n\nICP from candidate {rank}: fitness {out['fitness']:.2f}, RMS {out['rms']:.3f} m"

@@ -10,7 +10,7 @@ from __future__ import annotations
 import threading
 from typing import Protocol
 
-from app.panels.host import ViewerHost
+from app.view.panels.host import ViewerHost
 
 
 class Panel(Protocol):
@@ -18,12 +18,12 @@ class Panel(Protocol):
 
 
 def build_panels(viewer: ViewerHost) -> list[Panel]:
-    from app.panels.edit import EditPanel
-    from app.panels.guess import GuessPanel
-    from app.panels.loops import LoopsPanel
-    from app.panels.replay import ReplayPanel
+    from app.view.panels.edges import EdgesPanel
+    from app.view.panels.guesses import GuessPanel
+    from app.view.panels.loops import LoopsPanel
+    from app.view.panels.replay import ReplayPanel
 
-    panels: list[Panel] = [LoopsPanel(viewer), EditPanel(viewer), GuessPanel(viewer), ReplayPanel(viewer)]
+    panels: list[Panel] = [LoopsPanel(viewer), EdgesPanel(viewer), GuessPanel(viewer), ReplayPanel(viewer)]
 
     def first_fill() -> None:  # lists need the scans' poses, which load in the background
         viewer.ready.wait()

@@ -8,9 +8,20 @@ from typing import Any
 
 import numpy as np
 
-from app.panels.host import ViewerHost
-from app.registration import pipeline_config, store_run, working_copy
+from app.registration import store_run, working_copy
 from app.traces import TraceRecorder
+from app.view.panels.host import ViewerHost
+from slam6d.engine_settings import pipeline_config
+from slam6d.events import (
+    Event,
+    Finished,
+    IcpIterated,
+    LoopClosed,
+    LoopsDetected,
+    RelaxationProgressed,
+    ScanRegistered,
+    ScanStarted,
+)
 from slam6d.geometry import Matrix
 from slam6d.icp import correspondences
 from slam6d.pipeline import Pipeline
@@ -74,8 +85,8 @@ class Stepper:
         if self._playing.is_set():
             return
         self._playing.set()
-        self.viewer.play_button.disabled = True
-        self.viewer.pause_button.disabled = False
+        self.viewer.controls.play_button.disabled = True
+        self.viewer.controls.pause_button.disabled = False
         self.viewer.begin_playback(self._focus())
 
         def loop() -> None:
@@ -96,8 +107,8 @@ class Stepper:
         self._playing.clear()
         if self.viewer.stopped:
             return
-        self.viewer.play_button.disabled = False
-        self.viewer.pause_button.disabled = True
+        self.viewer.controls.play_button.disabled = False
+        self.viewer.controls.pause_button.disabled = True
         if was_playing:
             self.viewer.end_playback()
 
@@ -108,47 +119,43 @@ class Stepper:
         nearest = min(self.model, key=lambda m: abs(m - self.current), default=None)  # type: ignore[operator]
         return [self.current] if nearest is None else [self.current, nearest]
 
-    def _show(self, event: Any) -> None:
+    def _show(self, event: Event) -> None:
         viewer = self.viewer
+        status = viewer.controls.step_status
         self.events += 1
-        kind = type(event).__name__
-        if kind == "ScanStarted":
+        if isinstance(event, ScanStarted):
             self._set_pair(int(event.index), [int(i) for i in event.model_indices])
             self.history = []
             viewer.set_poses(self._pose_list(event.index, event.initial), [event.index])
-        elif kind == "IcpIterated":
+        elif isinstance(event, IcpIterated):
             it = event.iteration
             self.history.append((int(it.index), float(it.rms), int(it.pairs)))
             viewer.set_poses(self._pose_list(event.index, event.pose), [event.index])
             self._draw_correspondences(int(event.index), float(it.max_distance))
-            h = np.array(self.history, dtype=np.float64)
-            viewer.plot.data = (h[:, 0], h[:, 1], h[:, 2])
-            viewer.step_status.content = (
-                f"scan {event.index} · iteration {it.index} · RMS {it.rms:.4f} m · {it.pairs} pairs"
-            )
-        elif kind == "ScanRegistered":
+            viewer.controls.show_icp_history(self.history)
+            status.content = f"scan {event.index} · iteration {it.index} · RMS {it.rms:.4f} m · {it.pairs} pairs"
+        elif isinstance(event, ScanRegistered):
             viewer.set_poses(self._pose_list(event.index, event.pose), [event.index])
-            viewer.step_status.content = f"scan {event.index} registered (RMS {event.result.rms:.4f} m)"
-        elif kind == "Finished":
+            status.content = f"scan {event.index} registered (RMS {event.result.rms:.4f} m)"
+        elif isinstance(event, Finished):
             self.finished = True
             self._set_pair(None, [])
             viewer.server.scene.add_line_segments(
                 "/correspondences", np.zeros((1, 2, 3), np.float32), colors=(0, 0, 0), visible=False
             )
             store_run(viewer.workbench, viewer.session_id, self.author, self.pipeline, self.recorder, {"stepped": True})
-            viewer.step_status.content = "registration finished; stored as a new revision"
-        elif kind == "LoopsDetected":
-            accepted = sum(1 for h in event.hypotheses if getattr(h, "accepted", False))
-            viewer.step_status.content = f"{len(event.hypotheses)} loop hypotheses, {accepted} accepted"
-        elif kind in ("LoopClosed", "RelaxationProgressed"):
+            status.content = "registration finished; stored as a new revision"
+        elif isinstance(event, LoopsDetected):
+            accepted = sum(1 for h in event.hypotheses if h.accepted)
+            status.content = f"{len(event.hypotheses)} loop hypotheses, {accepted} accepted"
+        elif isinstance(event, LoopClosed):
             viewer.set_poses([np.asarray(p) for p in self.pipeline.poses])
-            viewer.step_status.content = (
+            status.content = (
                 f"loop {event.loop.i}-{event.loop.j} closed; largest move {max(event.displacement, default=0):.2f} m"
-                if kind == "LoopClosed"
-                else f"relaxation iteration {event.iteration}: residual {100 * event.residual:.2f} cm"
             )
-        else:
-            viewer.step_status.content = kind
+        elif isinstance(event, RelaxationProgressed):
+            viewer.set_poses([np.asarray(p) for p in self.pipeline.poses])
+            status.content = f"relaxation iteration {event.iteration}: residual {100 * event.residual:.2f} cm"
 
     def _pose_list(self, index: int, pose: Any) -> list[Matrix]:
         poses = [np.eye(4)] * (index + 1)

@@ -7,7 +7,7 @@ from typing import Any
 import numpy as np
 
 from app.editing import editor_for
-from app.panels.host import ViewerHost
+from app.view.panels.host import ViewerHost
 from slam6d.geometry import make_pose, quaternion_to_rotation, rotation_to_quaternion
 
 _NONE = "—"
@@ -15,7 +15,7 @@ PICKED_A = (255, 255, 255)
 PICKED_B = (255, 60, 200)
 
 
-class EditPanel:
+class EdgesPanel:
     def __init__(self, viewer: ViewerHost) -> None:
         self.viewer = viewer
         self.editor = editor_for(viewer.workbench)
@@ -79,7 +79,7 @@ class EditPanel:
 
     def _add(self, event: Any) -> None:
         i, j = int(self.scan_a.value), int(self.scan_b.value)
-        out = self.editor.add_edge(self.session_id, i, j, self.viewer.author(event), bool(self.force.value))
+        out = self.editor.edges.add(self.session_id, i, j, self.viewer.author(event), bool(self.force.value))
         edge = out["edge"]
         self.result.content = (
             f"edge {edge['i']}–{edge['j']} added (fitness {edge['fitness']:.2f}, RMS {edge['rms']:.3f} m), "
@@ -91,7 +91,7 @@ class EditPanel:
         if self.edge.value == _NONE:
             raise ValueError("choose an edge first")
         k = int(self.edge.value.split(":")[0])
-        out = self.editor.delete_edge(self.session_id, k, self.viewer.author(event))
+        out = self.editor.edges.delete(self.session_id, k, self.viewer.author(event))
         d = out["deleted"]
         self.result.content = f"{d['kind']} edge {d['i']}–{d['j']} deleted, revision {out['revision']}"
 
@@ -123,7 +123,7 @@ class EditPanel:
         if self.gizmo is None:
             raise ValueError("turn on 'Drag scan A' first")
         k = int(self.scan_a.value)
-        out = self.editor.move_scan(self.session_id, k, self._gizmo_pose(), self.viewer.author(event), refine)
+        out = self.editor.edges.move_scan(self.session_id, k, self._gizmo_pose(), self.viewer.author(event), refine)
         self.drag.value = False  # type: ignore[misc]
         self.result.content = (
             f"scan {k} {'matched from the dragged place' if refine else 'moved'}: residual RMS "
@@ -132,7 +132,7 @@ class EditPanel:
         self.viewer.warn(out["warning"] or "")
 
     def refresh(self) -> None:
-        edges = self.editor.edges(self.session_id)
+        edges = self.editor.edges.listed(self.session_id)
         options = [f"{e['k']}: {e['i']}–{e['j']} {e['kind']}" for e in edges] or [_NONE]
         previous = self.edge.value
         self.edge.options = options

@@ -9,12 +9,13 @@ from typing import Any, Protocol
 import numpy as np
 import viser
 
+from app.view.controls import ViewControls
 from app.workbench import SessionState, Workbench
 from slam6d.geometry import Matrix
 
 
 class ViewerHost(Protocol):
-    """What a panel may use of the session's 3D view (:class:`app.viewer.SessionViewer`).
+    """What a panel may use of the session's 3D view (:class:`app.view.session_view.SessionViewer`).
 
     Written out so that panels depend on this narrow surface, not on the viewer module, which
     builds them: the view and its panels then import in one direction only.
@@ -32,10 +33,7 @@ class ViewerHost(Protocol):
     local: list[np.ndarray]  # display points per scan, scanner frame
     nodes: list[Any]  # the scans' point-cloud handles
     highlight: dict[int, tuple[int, int, int]]
-    plot: Any  # the "ICP per iteration" plot handle
-    play_button: viser.GuiButtonHandle
-    pause_button: viser.GuiButtonHandle
-    step_status: viser.GuiMarkdownHandle
+    controls: ViewControls  # the view's own folders: the ICP plot, play/pause, the stepping status
 
     def author(self, event: Any) -> str: ...
     def warn(self, message: str) -> None: ...

@@ -1,0 +1,111 @@
+"""What every edit of a session needs: its engine settings, its reduced scans, its edges, a checked commit.
+
+Each edit (loops, edges, moves, relaxation, guesses) is one journal entry with author and
+parameters; edits that move scans go through :meth:`EditContext.commit_checked`, which compares the
+engine's residual summary before and after and reports a jump as a warning. Guardrails live here,
+not in the GUI, so a button and a REST call are held to the same checks.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Sequence
+from dataclasses import replace
+from typing import Any
+
+from app.editing.graph import graph_edge_list
+from app.workbench import EditError, Workbench
+from slam6d.engine_settings import pipeline_config
+from slam6d.geometry import Matrix
+from slam6d.icp import ICPConfig
+from slam6d.octree import reduce_points
+from slam6d.pipeline import PipelineConfig
+from slam6d.relax import ScanModels
+from slam6d.residuals import ResidualSummary, residual_jump, residual_summary
+from slam6d.session import Session
+
+
+class EditContext:
+    """One workbench's sessions as edits see them; keeps each session's reduced scans (built once) for ICP."""
+
+    def __init__(self, workbench: Workbench) -> None:
+        self.workbench = workbench
+        self._models: dict[str, tuple[int, ScanModels]] = {}
+        self.lock = threading.Lock()
+
+    def session(self, session_id: str) -> Session:
+        return self.workbench.state(session_id).session
+
+    def config(self, session_id: str) -> PipelineConfig:
+        """The session's ``[engine]`` settings, as ``slam6d run`` would read them."""
+        return pipeline_config(self.session(session_id).config.engine)
+
+    def icp_config(self, session_id: str) -> ICPConfig:
+        # the models are reduced already, as in the pipeline
+        return replace(self.config(session_id).icp, data_voxel_size=0.0)
+
+    def models(self, session_id: str) -> ScanModels:
+        """Each scan reduced to the engine's voxel size, with kd-trees built on first use."""
+        sequence = self.workbench.state(session_id).sequence()
+        with self.lock:
+            cached = self._models.get(session_id)
+            if cached is not None and cached[0] == id(sequence):
+                return cached[1]
+            voxel = float(self.config(session_id).voxel_size)
+            reduced = [s.points[reduce_points(s.points, voxel)] if voxel > 0 else s.points for s in sequence.scans]
+            models = ScanModels(reduced, self.icp_config(session_id))
+            self._models[session_id] = (id(sequence), models)
+            return models
+
+    def poses(self, session_id: str) -> list[Matrix]:
+        return self.workbench.current_poses(session_id)
+
+    def check_scan(self, session_id: str, *indices: int) -> int:
+        """The session's scan count; EditError (404) naming the range when an index is outside it."""
+        count = len(self.poses(session_id))
+        for k in indices:
+            if not 0 <= k < count:
+                raise EditError(f"no scan {k}; the session has scans 0..{count - 1}", 404)
+        return count
+
+    def edges(self, session_id: str, graph: dict[str, Any] | None = None) -> list[dict[str, Any]]:
+        """The edges of ``graph`` (default: the current revision's) as the user sees them."""
+        count = len(self.poses(session_id))
+        return graph_edge_list(count, self.session(session_id).graph() if graph is None else graph)
+
+    def residuals(
+        self, session_id: str, poses: Sequence[Matrix] | None = None, graph: dict[str, Any] | None = None
+    ) -> ResidualSummary:
+        poses = self.poses(session_id) if poses is None else poses
+        pairs = [(e["i"], e["j"]) for e in self.edges(session_id, graph)]
+        return residual_summary(self.models(session_id), poses, pairs)
+
+    def commit_checked(
+        self,
+        session_id: str,
+        poses: Sequence[Matrix],
+        author: str,
+        kind: str,
+        parameters: dict[str, Any],
+        graph: dict[str, Any] | None = None,
+    ) -> dict[str, Any]:
+        """Commit new poses with the residual summary before and after; a jump becomes ``warning``."""
+        before = self.residuals(session_id)
+        after = self.residuals(session_id, poses, graph)
+        warning = residual_jump(before, after)
+        params = {**parameters, "residual_before": before.rms, "residual_after": after.rms}
+        if warning:
+            params["warning"] = warning
+        revision = self.workbench.commit(session_id, list(poses), author, kind, params, graph=graph)
+        return {
+            "revision": revision,
+            "residual_before": before.as_dict(),
+            "residual_after": after.as_dict(),
+            "warning": warning,
+        }
+
+    def commit_graph(
+        self, session_id: str, graph: dict[str, Any], author: str, kind: str, parameters: dict[str, Any]
+    ) -> int:
+        """A new revision that changes only the graph (the poses stay)."""
+        return self.workbench.commit(session_id, self.poses(session_id), author, kind, parameters, graph=graph)

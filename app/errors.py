@@ -1,0 +1,47 @@
+"""What the workbench refuses, each with the HTTP status that fits; :mod:`app.routes.errors` maps them.
+
+Engine errors (:class:`~slam6d.errors.Slam6dError`) are the user's data or settings at fault (422),
+a relaxation that cannot run is a conflict with the graph (409); the workbench's own refusals carry
+their status, so a button in the 3D view and a REST call report the same thing.
+"""
+
+from __future__ import annotations
+
+from slam6d.errors import Slam6dError
+
+
+class WorkbenchError(Slam6dError):
+    """A request the workbench refuses; ``status`` is the HTTP status that fits."""
+
+    default_status = 422
+
+    def __init__(self, message: str, status: int | None = None) -> None:
+        self.status = self.default_status if status is None else status
+        super().__init__(message)
+
+
+class EditError(WorkbenchError):
+    """An edit cannot be made (404 an unknown scan, edge or loop; 409 a conflict with the state; 422 bad values)."""
+
+    default_status = 409
+
+
+class UploadError(WorkbenchError):
+    """An upload was refused (413 too large, 422 invalid)."""
+
+
+class JobConflictError(WorkbenchError):
+    """Another job is already running on this session."""
+
+    default_status = 409
+
+
+class UnknownSessionError(LookupError):
+    """No session folder of that id: 404, never a hint of what else exists on the server."""
+
+    def __init__(self, session_id: str) -> None:
+        self.session_id = session_id
+        super().__init__(f"no session '{session_id}'")
+
+
+__all__ = ["EditError", "JobConflictError", "UnknownSessionError", "UploadError", "WorkbenchError"]

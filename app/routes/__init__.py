@@ -1,0 +1,38 @@
+"""The REST API and the 3D view routes, one router per resource.
+
+==================  =========================================================
+module              resource
+==================  =========================================================
+``sessions``        sessions: list, create, upload, details, journal, undo/redo
+``exports``         poses per revision, pose and map downloads
+``jobs``            background jobs: start registration/reload, poll, cancel
+``loops``           loop hypotheses: detect, accept, reject; loop closing
+``edges``           the pose graph by hand: edges, moving a scan
+``relaxation``      relaxation jobs, residuals, displacement between revisions
+``guesses``         octree guesses and ICP from a candidate
+``traces``          stored traces of registration runs
+``camera_path``     fly-through keyframes, render jobs, rendered videos
+``views``           each session's 3D view (viser) behind the same port
+==================  =========================================================
+
+Session lookup and the author header are FastAPI dependencies (:mod:`app.routes.dependencies`);
+errors become statuses in one place (:mod:`app.routes.errors`).
+"""
+
+from __future__ import annotations
+
+from fastapi import APIRouter
+
+from app.routes import camera_path, edges, exports, guesses, jobs, loops, relaxation, sessions, traces
+
+API_ROUTERS: tuple[APIRouter, ...] = (
+    sessions.router,
+    exports.router,
+    jobs.router,
+    loops.router,
+    edges.router,
+    relaxation.router,
+    guesses.router,
+    traces.router,
+    camera_path.router,
+)

@@ -1,0 +1,39 @@
+"""What routes take from the request: the workbench, a session's state (404 when unknown), the editor, the author.
+
+A route that names ``state: SessionDep`` never runs for an unknown session id; the lookup and
+its error live here once (the status itself is chosen in :mod:`app.routes.errors`).
+"""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import Depends, Header, Request
+
+from app.editing import Editor, editor_for
+from app.workbench import SessionState, Workbench
+
+
+def get_workbench(request: Request) -> Workbench:
+    workbench: Workbench = request.app.state.workbench
+    return workbench
+
+
+WorkbenchDep = Annotated[Workbench, Depends(get_workbench)]
+
+
+def session_state(session_id: str, workbench: WorkbenchDep) -> SessionState:
+    """The session named in the path, opened once; UnknownSessionError (404) when there is none."""
+    return workbench.state(session_id)
+
+
+def get_editor(workbench: WorkbenchDep) -> Editor:
+    return editor_for(workbench)
+
+
+SessionDep = Annotated[SessionState, Depends(session_state)]
+# for routers and routes that need the session to exist but not its state
+REQUIRE_SESSION = Depends(session_state)
+EditorDep = Annotated[Editor, Depends(get_editor)]
+# who made an edit: the web pages send the name the user typed, so the journal says who did what
+Author = Annotated[str, Header(alias="X-Author", max_length=100)]

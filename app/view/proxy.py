@@ -1,0 +1,83 @@
+"""Forward a session's viser client page and websocket through the workbench's own port.
+
+The viser client derives its websocket address from the page address (``/viser/{id}/`` connects
+to ``ws://host/viser/{id}``) and identifies itself with the ``viser-v<version>`` subprotocol,
+which viser needs to accept the connection; both are forwarded unchanged, so the browser never
+learns the internal port. The routes are :mod:`app.routes.views`.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+
+import httpx
+import websockets
+from fastapi import Request, WebSocket
+from fastapi.responses import Response
+from starlette.websockets import WebSocketDisconnect
+from websockets.asyncio.client import connect as ws_connect
+
+_PASSED_HEADERS = ("content-type", "content-encoding", "cache-control", "etag", "last-modified")
+
+
+async def forward_file(client: httpx.AsyncClient, port: int, path: str, request: Request) -> Response:
+    """A file of the viser client (its page, scripts, fonts) from the view's internal server."""
+    headers = {"Accept-Encoding": request.headers.get("accept-encoding", "identity")}
+    upstream = await client.send(
+        client.build_request("GET", f"http://127.0.0.1:{port}/{path}", headers=headers), stream=True
+    )
+    try:
+        body = b"".join([chunk async for chunk in upstream.aiter_raw()])
+    finally:
+        await upstream.aclose()
+    passed = {k: v for k, v in upstream.headers.items() if k.lower() in _PASSED_HEADERS}
+    return Response(body, status_code=upstream.status_code, headers=passed)
+
+
+async def forward_socket(websocket: WebSocket, port: int) -> None:
+    """Join the browser's websocket to the view's internal one until either side closes."""
+    offered = [p for p in websocket.scope.get("subprotocols", []) if p.startswith("viser-v")]
+    try:
+        upstream = await ws_connect(
+            f"ws://127.0.0.1:{port}",
+            subprotocols=[websockets.Subprotocol(p) for p in offered] or None,
+            max_size=None,
+            compression=None,
+            open_timeout=10,
+            ping_interval=None,
+        )
+    except (OSError, websockets.InvalidHandshake, TimeoutError):
+        await websocket.close(code=1011)
+        return
+    await websocket.accept(subprotocol=upstream.subprotocol)
+
+    async def to_browser() -> None:
+        async for message in upstream:
+            if isinstance(message, bytes):
+                await websocket.send_bytes(message)
+            else:
+                await websocket.send_text(message)
+
+    async def to_viser() -> None:
+        while True:
+            message = await websocket.receive()
+            if message["type"] == "websocket.disconnect":
+                return
+            if message.get("bytes") is not None:
+                await upstream.send(message["bytes"])
+            elif message.get("text") is not None:
+                await upstream.send(message["text"])
+
+    tasks = [asyncio.create_task(to_browser()), asyncio.create_task(to_viser())]
+    try:
+        await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
+    finally:
+        for task in tasks:
+            task.cancel()
+        for task in tasks:
+            with contextlib.suppress(asyncio.CancelledError, WebSocketDisconnect, websockets.ConnectionClosed):
+                await task
+        await upstream.close()
+        with contextlib.suppress(RuntimeError, WebSocketDisconnect):
+            await websocket.close()

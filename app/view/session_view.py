@@ -1,0 +1,196 @@
+"""The 3D view of a session: one viser server per open session, shared by every browser on it.
+
+Everything shown lives in server-side state, so a second browser on the same session sees the
+same map, colours and revision. The view is assembled from parts, one module each:
+
+* :mod:`app.view.scene_stream` - the scans sent at a point budget, coarse first, moved by pose;
+* :mod:`app.view.colouring` - colours by scan, height or residual, picked and highlighted scans;
+* :mod:`app.view.picking` - which scan is under a click;
+* :mod:`app.view.playback` - the light map while registration is stepped;
+* :mod:`app.view.graph_overlay` - trajectory and loop edges coloured by residual;
+* :mod:`app.view.controls` - the View / Registration / History folders;
+* :mod:`app.view.stepping` - registration one ICP iteration at a time;
+* :mod:`app.view.panels` - loops, graph edits, octree guesses, replay, fly-through.
+"""
+
+from __future__ import annotations
+
+import threading
+import traceback
+from collections.abc import Callable
+from typing import Any
+
+import viser
+
+from app.editing import editor_for
+from app.registration import registration_job
+from app.view.colouring import Colouring
+from app.view.controls import ViewControls
+from app.view.graph_overlay import GraphOverlay
+from app.view.panels import build_panels
+from app.view.panels.fly_through import FlyThroughPanel
+from app.view.panels.progress import show_job_progress
+from app.view.picking import Picking
+from app.view.playback import Playback
+from app.view.scene_stream import SceneStream
+from app.view.stepping import Stepper
+from app.workbench import Workbench
+from slam6d.engine_settings import pipeline_config
+from slam6d.errors import Slam6dError
+
+# what a button press may run into that the user can act on: shown as the message alone
+USER_ERRORS = (Slam6dError, ValueError)
+
+
+class SessionViewer(SceneStream, Colouring, Picking, Playback, GraphOverlay):
+    def __init__(self, workbench: Workbench, session_id: str) -> None:
+        self.workbench = workbench
+        self.session_id = session_id
+        self.state = workbench.state(session_id)
+        self.editor = editor_for(workbench)
+        self.server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False, label=self.state.session.name)
+        self.port = self.server.get_port()
+        self.server.scene.set_up_direction("+z")
+        # no shadow maps: points neither cast nor receive shadows, and rendering the light's shadow
+        # cascades is a fixed cost on every frame (large without a GPU)
+        self.server.scene.configure_default_lights(cast_shadow=False)
+        self.server.gui.configure_theme(dark_mode=True, control_width="large")
+        self.lock = threading.RLock()
+        self.ready = threading.Event()
+        self.error: str | None = None
+        self.stopped = False
+        self.init_scene_stream()
+        self.init_colouring()
+        self.init_playback()
+        self.init_graph_overlay(float(pipeline_config(self.state.session.config.engine).icp.max_distance))
+        self.stepper: Stepper | None = None
+        self.client_names: dict[int, Any] = {}
+        self.controls = ViewControls(self.server.gui)
+        self._wire_controls()
+        self.fly_through = FlyThroughPanel(self)  # the "Fly-through" folder
+        self.panels = build_panels(self)  # loops, graph edits, octree guess, replay (app/view/panels)
+        self.server.on_client_connect(self._on_connect)
+        threading.Thread(target=self.load, name=f"viewer-load-{session_id}", daemon=True).start()
+
+    def _wire_controls(self) -> None:
+        c = self.controls
+        c.colour.on_update(lambda _: self.run_safely(self.recolour))
+        c.point_size.on_update(lambda _: self.set_point_size())
+        c.apply_budget.on_click(lambda _: self.run_safely(self.rebuild_scans))
+        c.show_trajectory.on_update(lambda _: self.draw_graph())
+        c.show_edges.on_update(lambda _: self.draw_graph())
+        c.undo_button.on_click(lambda e: self.run_safely(lambda: self.workbench.undo(self.session_id, self.author(e))))
+        c.redo_button.on_click(lambda e: self.run_safely(lambda: self.workbench.redo(self.session_id, self.author(e))))
+        c.run_button.on_click(lambda e: self.run_safely(lambda: self._start_registration(self.author(e))))
+        c.cancel_button.on_click(lambda _: self._cancel_jobs())
+        c.step_button.on_click(lambda e: self.run_safely(lambda: self._stepper(self.author(e)).step()))
+        c.next_scan_button.on_click(lambda e: self.run_safely(lambda: self._stepper(self.author(e)).next_scan()))
+        c.play_button.on_click(lambda e: self.run_safely(lambda: self._stepper(self.author(e)).play()))
+        c.pause_button.on_click(lambda _: self._pause())
+
+    # -------------------------------------------------------------- who acts, and what went wrong
+
+    def _on_connect(self, client: viser.ClientHandle) -> None:
+        # Each browser has its own name field, so the journal records who pressed a button.
+        self.client_names[client.client_id] = client.gui.add_text("Your name", f"guest-{client.client_id}", order=-1)
+        self.client_seen.set()
+
+    def author(self, event: Any) -> str:
+        field = self.client_names.get(getattr(event, "client_id", -1))
+        return (field.value.strip() if field is not None else "") or "anonymous"
+
+    def run_safely(self, action: Callable[[], object]) -> None:
+        """GUI callbacks and the panels' background refreshes: an error the user can act on becomes a
+        visible warning, not a dead button; anything else also leaves its traceback in the log. Once the
+        view has stopped nothing runs: its server would drop the updates."""
+        if self.stopped:
+            return
+        try:
+            action()
+        except USER_ERRORS as exc:
+            self.warn(str(exc))
+        except Exception as exc:
+            traceback.print_exc()
+            self.warn(f"{type(exc).__name__}: {exc}")
+
+    def warn(self, message: str) -> None:
+        self.controls.warnings.content = f"**⚠ {message}**" if message else ""
+
+    def update_status(self) -> None:
+        session = self.state.session
+        shown = sum(len(p) for p in self.local)
+        total = sum(len(s) for s in self.state.sequence().scans)
+        self.controls.status.content = (
+            f"**{session.name}** · {len(self.local)} scans · {shown:,} of {total:,} points shown · "
+            f"revision {session.revision}"
+        )
+        self.controls.revision_text.content = (
+            f"Revision {session.revision} (undo: {session.journal.can_undo()}, redo: {session.journal.can_redo()})"
+        )
+
+    def on_revision(self) -> None:
+        """The journal's current revision changed (edit, undo, job): show it."""
+        if not self.ready.is_set() or self.error:
+            return
+        poses = self.state.session.poses()
+        self.set_poses(poses)
+        with self.lock:
+            self.shown_revision = self.state.session.revision
+            if self.controls.colour.value != "scan":
+                self.recolour()
+        self.draw_graph()
+        self.update_status()
+        for panel in self.panels:
+            self.run_safely(panel.refresh)
+
+    # -------------------------------------------------------------- jobs and stepping
+
+    def _start_registration(self, author: str) -> None:
+        work = registration_job(self.workbench, self.session_id, author, {})
+        self.workbench.jobs.submit(self.session_id, "register", work, author)
+
+    def _cancel_jobs(self) -> None:
+        for job in self.workbench.jobs.for_session(self.session_id):
+            self.workbench.jobs.cancel(job.id)
+
+    def on_job(self, job: Any) -> None:
+        c = self.controls
+        show_job_progress(job, c.run_button, c.cancel_button, c.progress, c.status, job.kind)
+        if job.active:
+            return
+        if job.status == "failed":
+            self.warn(f"{job.kind} failed: {job.message}")
+        else:
+            # an edit's guardrail (e.g. residuals jumped) stays visible after the job
+            self.warn((job.result.get("warning") or "") if job.status == "done" else f"{job.kind} {job.status}")
+        self.update_status()
+
+    def _pause(self) -> None:
+        if self.stepper is not None:
+            self.stepper.pause()
+
+    def _stepper(self, author: str) -> Stepper:
+        if self.stepper is None or self.stepper.finished:
+            self.stepper = Stepper(self, author)
+        return self.stepper
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "ready": self.ready.is_set(),
+            "error": self.error,
+            "scans": len(self.nodes),
+            "points_shown": int(sum(len(p) for p in self.local)),
+            "points_coarse": self.coarse_points,
+            "colour": self.controls.colour.value,
+            "revision_shown": self.shown_revision,
+            "pose_updates": self.pose_updates,
+            "stepping": None if self.stepper is None else self.stepper.as_dict(),
+            "clients": len(self.server.get_clients()),
+        }
+
+    def stop(self) -> None:
+        with self.lock:  # no background drawing is half-way when the server goes
+            self.stopped = True
+        if self.stepper is not None:
+            self.stepper.pause()
+        self.server.stop()
