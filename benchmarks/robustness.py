@@ -23,6 +23,7 @@ map whatever the reference. Success: error <= 5 cm (bunny: 1 mm) and the method 
 
     .venv/bin/python benchmarks/robustness.py            # the full matrix (about an hour on 2 busy cores)
     .venv/bin/python benchmarks/robustness.py --quick    # 1 seed, 5 scans, BALM's first 10 scans
+    .venv/bin/python benchmarks/robustness.py --octree-timing   # the octree search on a 100k-point pair
 """
 
 from __future__ import annotations
@@ -46,7 +47,7 @@ sys.path.insert(0, str(ROOT))
 from benchmarks.trajectory import kiss_icp, load, small_gicp_gtsam  # noqa: E402
 from slam6d.drift import drifted_odometry  # noqa: E402
 from slam6d.errors import RegistrationError  # noqa: E402
-from slam6d.geometry import UOS, Matrix, invert, transform_points  # noqa: E402
+from slam6d.geometry import UOS, Matrix, invert, pose_difference, transform_points  # noqa: E402
 from slam6d.icp import ICPConfig, icp  # noqa: E402
 from slam6d.io.poses import read_kitti_poses, write_kitti_poses  # noqa: E402
 from slam6d.io.registry import read_sequence  # noqa: E402
@@ -255,6 +256,38 @@ def _bins_only(root: Path, balm: Path, count: int) -> Path:
     return folder
 
 
+# ---------------------------------------------------------------- octree search cost
+
+
+def octree_timing(repeats: int = 3) -> None:
+    """Wall and CPU time of the octree search on a simulated HDL-64E street pair (~100k points per
+    scan) from starts off by 2 m / 45° / 5°, and where ICP from its winner ends."""
+    import math
+
+    from slam6d.geometry import pose_from_xyzrpy
+    from slam6d.initial_guess import octree_guess
+    from tests.simulated_loop import simulated_loop
+
+    sim = simulated_loop(scans=20, points=None, seed=1, first=2, sensor="hdl64", world="outdoor")
+    model, data = sim.sequence[0].points, sim.sequence[1].points
+    truth = invert(sim.truth[0]) @ sim.truth[1]
+    print(f"octree search, HDL-64E pair: {len(model):,} and {len(data):,} points ({load()})")
+    octree_guess(model, data, truth)  # compiles/loads the kernels once
+    deg = math.pi / 180.0
+    for offsets in [(2.0, 0.0, 0.0, 5 * deg, 5 * deg, 45 * deg), (0.0, -2.0, 0.0, -5 * deg, 5 * deg, -45 * deg)]:
+        start = truth @ pose_from_xyzrpy(*offsets)
+        for _ in range(repeats):
+            wall, cpu = time.perf_counter(), time.process_time()
+            guess = octree_guess(model, data, start)
+            wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
+            refined = icp(model, data, guess.transform, ICPConfig()).transform
+            metres, radians = pose_difference(refined, truth)
+            print(
+                f"  start {offsets[:2]} m, {offsets[5] / deg:+.0f}° yaw: {wall:.2f} s wall, {cpu:.2f} s CPU;"
+                f" ICP from the winner {100 * metres:.1f} cm / {radians / deg:.2f}° off ({load()})"
+            )
+
+
 # ---------------------------------------------------------------- the table
 
 
@@ -267,7 +300,11 @@ def main() -> None:
     parser.add_argument("--balm-scans", type=int, default=30)
     parser.add_argument("--only", default="", help="run the cases whose name contains this")
     parser.add_argument("--methods", default=",".join(METHODS), help="comma-separated subset of the methods")
+    parser.add_argument("--octree-timing", action="store_true", help="only time the octree search on a 100k pair")
     args = parser.parse_args()
+    if args.octree_timing:
+        octree_timing()
+        return
     seeds = [1] if args.quick else list(range(1, args.seeds + 1))
     scans = 5 if args.quick else args.scans
     balm_scans = 10 if args.quick else args.balm_scans
