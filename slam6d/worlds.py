@@ -476,27 +476,35 @@ def _line_streets(mesh: MeshBuilder, terrain: Terrain, route: Route, layout: Cit
     """Along both sides of every street, every 6 m: a tree on the pavement (30 %), a car parked at
     the kerb (25 %), a lamp post (7 %) or nothing; intersections and the route's lanes kept clear."""
     nx, ny = layout.blocks
+    pitch = layout.pitch
+    centres, outwards, horizontals = [], [], []
     for horizontal in (True, False):
         lines, blocks = (ny + 1, nx) if horizontal else (nx + 1, ny)
+        along = np.arange(10.0, blocks * pitch - 9.0, 6.0)
+        along = along[(along % pitch >= 12.0) & (along % pitch <= pitch - 12.0)]  # not in an intersection
         for line in range(lines):
-            for along in np.arange(10.0, blocks * layout.pitch - 9.0, 6.0):
-                for side in (-1.0, 1.0):
-                    kind = rng.random()
-                    if not 12.0 <= along % layout.pitch <= layout.pitch - 12.0:
-                        continue  # an intersection
-                    centre = np.r_[along, line * layout.pitch] if horizontal else np.r_[line * layout.pitch, along]
-                    outward = np.r_[0.0, side] if horizontal else np.r_[side, 0.0]
-                    if kind < 0.3:
-                        crown = rng.uniform(1.2, 2.4)
-                        if route.distance(here := centre + 6.5 * outward)[0] > crown + 0.8:
-                            _tree(mesh, terrain, here, crown, rng)
-                            objects["trees"] += 1
-                    elif kind < 0.55 and route.distance(here := centre + 5.0 * outward)[0] > 2.3:
-                        _car(mesh, terrain, here, 0.0 if horizontal else np.pi / 2)
-                        objects["cars"] += 1
-                    elif kind > 0.93 and route.distance(here := centre + 7.2 * outward)[0] > 1.0:
-                        _pole(mesh, terrain, here)
-                        objects["poles"] += 1
+            for side in (-1.0, 1.0):
+                across = np.full(len(along), line * pitch)
+                centres.append(np.c_[along, across] if horizontal else np.c_[across, along])
+                outwards.append(np.tile([0.0, side] if horizontal else [side, 0.0], (len(along), 1)))
+                horizontals.append(np.full(len(along), horizontal))
+    centre, outward, horizontal_street = np.vstack(centres), np.vstack(outwards), np.concatenate(horizontals)
+    kind = rng.random(len(centre))
+    offset = np.where(kind < 0.3, 6.5, np.where(kind < 0.55, 5.0, 7.2))  # pavement, kerb, lamp line
+    spots = centre + offset[:, None] * outward
+    clearance = route.distance(spots)
+    for k in np.nonzero((kind < 0.55) | (kind > 0.93))[0]:
+        if kind[k] < 0.3:
+            crown = rng.uniform(1.2, 2.4)
+            if clearance[k] > crown + 0.8:
+                _tree(mesh, terrain, spots[k], crown, rng)
+                objects["trees"] += 1
+        elif kind[k] < 0.55 and clearance[k] > 2.3:
+            _car(mesh, terrain, spots[k], 0.0 if horizontal_street[k] else np.pi / 2)
+            objects["cars"] += 1
+        elif kind[k] > 0.93 and clearance[k] > 1.0:
+            _pole(mesh, terrain, spots[k])
+            objects["poles"] += 1
 
 
 WORLDS: dict[str, World] = {

@@ -73,12 +73,12 @@ def test_same_seed_writes_identical_files_and_another_seed_does_not(tmp_path: Pa
     assert third["ground_truth_kitti.txt"] != first["ground_truth_kitti.txt"]
 
 
-@pytest.mark.parametrize(("world", "sensor", "motion"), [("indoor", "os1-64", "handheld"), ("outdoor", "hdl32", "car")])
-def test_every_world_sensor_and_motion_is_deterministic_by_seed(
-    tmp_path: Path, world: str, sensor: str, motion: str
-) -> None:
+def test_other_worlds_sensors_and_motions_are_deterministic_by_seed(tmp_path: Path) -> None:
+    """The handheld's steps, looks and wobble and the indoor world's doors and furniture are drawn
+    from the seed too (the campus test covers the car and the city)."""
+
     def config(seed: int) -> SimulationConfig:
-        return SimulationConfig(seed=seed, scans=3, world=world, sensor=sensor, motion=motion, points_per_scan=64 * 40)
+        return SimulationConfig(seed=seed, scans=3, world="indoor", sensor="os1-64", points_per_scan=64 * 40)
 
     simulate_session(tmp_path / "a", config(11))
     simulate_session(tmp_path / "b", config(11))
@@ -280,8 +280,8 @@ def test_vlp16_fires_its_lasers_interleaved() -> None:
 
 
 def test_sensor_range_and_noise_are_the_devices(tmp_path: Path) -> None:
-    """An HDL-64E on the campus sees beyond the SICK's 30 m, up to its own 120 m, with ~2 cm noise."""
-    config = SimulationConfig(seed=2, scans=2, world="campus", sensor="hdl64", points_per_scan=64 * 300)
+    """An HDL-64E in the streets sees beyond the SICK's 30 m, up to its own 120 m, with ~2 cm noise."""
+    config = SimulationConfig(seed=2, scans=2, world="outdoor", sensor="hdl64", points_per_scan=64 * 300)
     simulation = simulated_scans(config)
     assert simulation.config.max_range == 120.0 and simulation.config.range_noise == 0.02
     points = next(simulation.scans())
