@@ -336,13 +336,12 @@ OUTDOOR = CityLayout(
     blocks=(3, 2), pitch=60.0, street_half_width=7.0, terrain_amplitude=1.5, terrain_wavelengths=(60.0, 160.0),
     loops=(((0, 0), (3, 0), (3, 2), (0, 2)),  # the perimeter, counter-clockwise
            ((0, 0), (1, 0), (1, 2), (3, 2), (3, 1), (0, 1))),  # two of its streets the other way
-
     park=(1, 1),
 )  # fmt: skip
 CAMPUS = CityLayout(
     blocks=(6, 4), pitch=80.0, street_half_width=8.0, terrain_amplitude=0.6, terrain_wavelengths=(200.0, 500.0),
     loops=(((0, 0), (1, 0), (1, 1), (0, 1)),  # small, counter-clockwise, up onto the deck first
-           ((0, 0), (3, 0), (3, 2), (1, 2), (1, 0.6625), (0, 0.6625)),  # medium, back along the first, under the deck
+           ((0, 0), (3, 0), (3, 2), (1, 2), (1, 0.6625), (0, 0.6625)),  # medium: a street of the first the other way, under the deck
            ((0, 0), (6, 0), (6, 4), (0, 4))),  # large, counter-clockwise
     # Every loop leaves the origin eastwards and comes back southwards: no U-turns between them.
     park=(4, 2),
@@ -373,6 +372,7 @@ class _Deck:
         return up + roof + up[::-1]
 
     def build(self, mesh: MeshBuilder, terrain: Terrain) -> None:
+        """The roof slab with its parapet, the columns, and the ramp with its side walls."""
         thickness = 0.4
         centre = np.r_[(self.x0 + self.x1) / 2, (self.y0 + self.y1) / 2]
         mesh.box(np.r_[centre, self.roof - thickness / 2], np.r_[self.x1 - self.x0, self.y1 - self.y0, thickness])
