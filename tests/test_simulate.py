@@ -359,6 +359,18 @@ def test_campus_has_levels_loops_and_opposite_revisits(campus_drive: Simulation)
     assert stacked.any()
 
 
+def test_the_car_stands_on_what_it_drives_on(campus_drive: Simulation) -> None:
+    """Straight down from the scanner, the first surface is 1.9 m away everywhere: street, ramp,
+    the deck's roof and under the deck (where the roof is above it)."""
+    scene = campus_drive.scene
+    below = np.array([scene.cast(p[:3, 3], -p[None, :3, 2])[0] for p in campus_drive.truth])
+    above = np.array([scene.cast(p[:3, 3], p[None, :3, 2])[0] for p in campus_drive.truth])
+    np.testing.assert_allclose(below, 1.9, atol=0.05)
+    heights = np.array([p[2, 3] - scene.terrain.height(p[0, 3], p[1, 3]) for p in campus_drive.truth])
+    assert (heights > 5.0).sum() > 10  # on the roof
+    assert (above < 3.0).sum() > 5  # under it
+
+
 def test_campus_is_deterministic_by_seed(campus_drive: Simulation) -> None:
     again = simulated_scans(campus_drive.config)
     for a, b in zip(campus_drive.truth, again.truth, strict=True):
