@@ -197,7 +197,10 @@ def render(
 def simulate(
     out: Annotated[Path, typer.Argument(help="Directory to write the uos session into.")],
     seed: Annotated[int, typer.Option(help="Random seed: the same seed writes identical files.")] = 0,
-    scans: Annotated[int, typer.Option(help="Number of scans.")] = 20,
+    scans: Annotated[
+        int,
+        typer.Option(help="Number of scans: the robot spreads them over one lap, handheld and car take a step each."),
+    ] = 20,
     world: Annotated[
         str,
         typer.Option(
@@ -241,7 +244,10 @@ def simulate(
     decimals: Annotated[int, typer.Option(help="Decimals of the centimetre coordinates in the files.")] = 2,
     overwrite: Annotated[bool, typer.Option(help="Replace scans already in OUT.")] = False,
 ) -> None:
-    """Write a simulated session (uos) with ground truth and, unless --no-odometry, drifting odometry."""
+    """Write a simulated session (uos) with ground truth and, unless --no-odometry, drifting odometry.
+
+    Sensors, worlds, motions and timings in detail: docs/simulator.md.
+    """
     from slam6d.metrics import absolute_trajectory_error
     from slam6d.simulate import SimulationConfig, simulate_session
 

@@ -103,7 +103,7 @@ def ground_truth_poses(config: SimulationConfig, scene: Scene, rng: np.random.Ge
     """Scanner poses standing on the route: up along the ground's normal, forward along the route,
     with the motion's steps, looking round and wobble. The robot draws nothing from ``rng``."""
     config = config.resolved()
-    motion = get_motion(config.motion or "robot")
+    motion = get_motion(config.motion or "")
     height = config.sensor_height if config.sensor_height is not None else motion.sensor_height
     needs_draws = motion.step_m is not None or motion.look_deg or motion.wobble_deg or motion.sway_m
     if needs_draws and rng is None:

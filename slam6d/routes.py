@@ -194,7 +194,3 @@ class Tour(Route):
             return super().stand(s, terrain)
         xy, heading = self.at(s)
         return np.r_[xy, np.interp(s, self.arc[k - 1 : k + 1], self.heights[k - 1 : k + 1])], heading, self.ups[k]
-
-    def on_structure(self) -> NDArray[np.bool_]:
-        """Which polyline vertices lie on a structure rather than the terrain."""
-        return ~np.isnan(self.heights)
