@@ -26,9 +26,9 @@ Search design (why it stays cheap):
   dominate it.
 * Angle steps halve with the cube sizes (the coarsest level's step is ``max_angle_step``). A step
   from the far points alone (``cube / lever`` with a 30 m lever on a street) gave the coarsest level
-  ~4,000 rotations, i.e. 17-30 s per pair on simulated HDL-32E street scans: the cost the issue
-  measured as 24-51 s per scan without odometry. Far points misplaced by a coarse rotation step
-  merely add the same noise to every candidate; the finer levels, with finer steps, use them.
+  ~4,000 rotations, 20 times the grid on an indoor hall: the 24-51 s per scan without odometry
+  that users saw on car scans. Far points misplaced by a coarse rotation step merely add the same
+  noise to every candidate; the finer levels, with finer steps, use them.
 * Rotations turn about the scanner (the data frame's origin) when it stands inside its scan, else
   about the data's centroid (:func:`search_pivot`): a start is off because the vehicle's heading
   is, and turning about a centroid metres away couples each rotation with a translation that can
@@ -36,8 +36,9 @@ Search design (why it stays cheap):
 * Points on the dominant near-level planes (ground, floor, ceiling; :func:`level_surfaces`) are not
   scored. A multi-beam lidar samples them in concentric rings about itself, which overlap best
   when the two scanners stand at the same place whatever the heading: on simulated VLP-16 street
-  pairs moved 1 m, scoring them put every winner at the co-located pose (1.0 m off) and ICP stayed
-  there; without them the winners land within 0.1-0.3 m.
+  pairs, scoring them put the winners about a metre off (at the co-located pose) and ICP from
+  there recovered 1 of 6 hard starts; without them 6 of 6, winners 9-13 cm off
+  (``benchmarks/robustness.py --octree-rings``).
 * Finer levels search a few of their own steps around the previous winner (±2 in translation, ±1
   in angle by default; with halving cubes ±1 step of the level above): a coarse winner is only
   known to within its own step, and translation errors also absorb the coupling of a residual
