@@ -30,6 +30,15 @@ class UploadError(WorkbenchError):
     """An upload was refused (413 too large, 422 invalid)."""
 
 
+class PartialResultError(Slam6dError):
+    """A job failed part-way but kept what it had done (e.g. a registration's poses as a revision);
+    ``result`` is what it kept, reported with the failure."""
+
+    def __init__(self, message: str, result: dict[str, object]) -> None:
+        self.result = result
+        super().__init__(message)
+
+
 class JobConflictError(WorkbenchError):
     """Another job is already running on this session."""
 

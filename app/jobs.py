@@ -17,7 +17,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from app.errors import JobConflictError
+from app.errors import JobConflictError, PartialResultError
 from slam6d.errors import Cancelled, Slam6dError
 
 Progress = Callable[[str, int, int], None]
@@ -131,8 +131,10 @@ class JobManager:
             job.result = work(progress, job._cancel.is_set) or {}
             job.status = "done"
         except Exception as exc:
+            if isinstance(exc, PartialResultError):  # failed, but what it did is kept: say where
+                job.result = dict(exc.result)
             if job._cancel.is_set() or isinstance(exc, Cancelled):
-                job.status, job.message = "cancelled", "cancelled"
+                job.status, job.message = "cancelled", str(exc) if isinstance(exc, PartialResultError) else "cancelled"
             else:
                 job.status = "failed"
                 job.message = str(exc) if isinstance(exc, Slam6dError) else f"{type(exc).__name__}: {exc}"

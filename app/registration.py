@@ -10,11 +10,13 @@ from __future__ import annotations
 from typing import Any
 
 from app.editing.loops import hypotheses_entry
+from app.errors import PartialResultError
 from app.jobs import Cancel, Progress, Work
 from app.traces import TraceRecorder
 from app.workbench import Workbench
 from slam6d import pipeline
 from slam6d.engine_settings import pipeline_config
+from slam6d.errors import Slam6dError
 from slam6d.scan import Scan, ScanSequence
 from slam6d.trace import to_jsonable
 
@@ -54,13 +56,60 @@ def registration_job(workbench: Workbench, session_id: str, author: str, paramet
         base = state.session.revision  # the revision the run starts from (the scans follow the head)
         runner = pipeline.Pipeline(sequence, config)
         recorder = TraceRecorder()
-        report = recorder.attach(runner).run(progress, cancel)
+        try:
+            report = recorder.attach(runner).run(progress, cancel)
+        except Slam6dError as exc:
+            kept = keep_partial_run(
+                workbench, session_id, author, runner, recorder, {"config": to_jsonable(config)}, base
+            )
+            if kept is None:
+                raise
+            raise PartialResultError(f"{exc} — {kept['kept']}", kept) from exc
         summary = to_jsonable(report)
         return store_run(workbench, session_id, author, runner, recorder, {"config": to_jsonable(config)}, base) | {
             "report": summary
         }
 
     return work
+
+
+def keep_partial_run(
+    workbench: Workbench,
+    session_id: str,
+    author: str,
+    runner: Any,
+    recorder: Any,
+    parameters: dict,
+    base: int | None = None,
+) -> dict[str, Any] | None:
+    """Commit the poses of a run whose stage failed (or was cancelled) as a revision, with the failure
+    (stage, reason) and the connected components in its journal entry, so the operator can correct
+    it by hand instead of starting over. None when the run has no report of a failure to keep."""
+    report = getattr(runner, "report", None)
+    failure = getattr(report, "failure", None)
+    if report is None or failure is None:
+        return None
+    components = [list(c) for c in getattr(report, "components", [])]
+    stored = store_run(
+        workbench,
+        session_id,
+        author,
+        runner,
+        recorder,
+        {**parameters, "failure": to_jsonable(failure), "components": components},
+        base,
+    )
+    pieces = f" in {len(components)} connected components" if len(components) > 1 else ""
+    message = (
+        f"the {failure.stage} stage failed; the poses of the stages before it are kept as revision "
+        f"{stored['revision']}{pieces}"
+    )
+    return stored | {
+        "kept": message,
+        "failure": to_jsonable(failure),
+        "components": components,
+        "report": to_jsonable(report),
+    }
 
 
 def store_run(

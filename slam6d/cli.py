@@ -93,7 +93,8 @@ def match(
     guess: Annotated[
         str,
         typer.Option(
-            help="Octree cube search before ICP: auto (when poses are missing or ICP fits poorly), octree, none."
+            help="Start search before ICP: auto (octree search when poses are missing or ICP fits poorly, then the "
+            "FPFH+RANSAC feature guess if that fits poorly too), octree, features, none."
         ),
     ] = "auto",
     method: Annotated[
@@ -134,6 +135,11 @@ def match(
         f"ICP: {len(result.icp.iterations)} iterations, {result.icp.pairs} pairs, "
         f"rms {result.icp.rms * 100:.2f} cm, converged={result.icp.converged}"
     )
+    if len(result.attempts) > 1 or result.winner != "start":
+        tries = ", ".join(
+            f"{a.source} (fitness {a.fitness:.2f})" if not a.error else f"{a.source} (failed)" for a in result.attempts
+        )
+        err.print(f"starts tried: {tries}; kept: {result.winner}")
     if trace is not None:
         write_trace(trace, result)
 
@@ -191,7 +197,10 @@ def render(
 def simulate(
     out: Annotated[Path, typer.Argument(help="Directory to write the uos session into.")],
     seed: Annotated[int, typer.Option(help="Random seed: the same seed writes identical files.")] = 0,
-    scans: Annotated[int, typer.Option(help="Number of scans.")] = 20,
+    scans: Annotated[
+        int,
+        typer.Option(help="Number of scans: the robot spreads them over one lap, handheld and car take a step each."),
+    ] = 20,
     world: Annotated[
         str,
         typer.Option(
@@ -235,7 +244,10 @@ def simulate(
     decimals: Annotated[int, typer.Option(help="Decimals of the centimetre coordinates in the files.")] = 2,
     overwrite: Annotated[bool, typer.Option(help="Replace scans already in OUT.")] = False,
 ) -> None:
-    """Write a simulated session (uos) with ground truth and, unless --no-odometry, drifting odometry."""
+    """Write a simulated session (uos) with ground truth and, unless --no-odometry, drifting odometry.
+
+    Sensors, worlds, motions and timings in detail: docs/simulator.md.
+    """
     from slam6d.metrics import absolute_trajectory_error
     from slam6d.simulate import SimulationConfig, simulate_session
 
@@ -317,6 +329,13 @@ def run(
     ] = None,
     first: Annotated[int, typer.Option(help="First scan index to use.")] = 0,
     last: Annotated[int | None, typer.Option(help="Last scan index to use (inclusive).")] = None,
+    order: Annotated[
+        str,
+        typer.Option(
+            help="Order of a folder's scan files: natural (2.pcd before 10.pcd, timestamps as numbers), name "
+            "(plain text) or mtime (file time)."
+        ),
+    ] = "natural",
     min_range: Annotated[float | None, typer.Option(help="Drop points nearer than this (input units).")] = None,
     max_range: Annotated[float | None, typer.Option(help="Drop points farther than this (input units).")] = None,
     voxel: Annotated[float, typer.Option(help="Reduction voxel in metres (one real point per voxel); 0 = off.")] = 0.1,
@@ -329,6 +348,9 @@ def run(
     ] = "point_to_plane",
     max_distance: Annotated[float, typer.Option(help="ICP max point-pair distance, metres.")] = 0.25,
     guess: Annotated[str, typer.Option(help="Octree initial guess: auto, always or never.")] = "auto",
+    feature_guess: Annotated[
+        bool, typer.Option(help="Try the FPFH+RANSAC feature guess when ICP still fits poorly after the octree search.")
+    ] = True,
     loops: Annotated[bool, typer.Option(help="Detect loops.")] = True,
     loop_closing: Annotated[bool, typer.Option(help="Close detected loops by error diffusion.")] = True,
     relaxation: Annotated[str, typer.Option(help="Global relaxation: lum, graph, simultaneous or none.")] = "lum",
@@ -337,7 +359,11 @@ def run(
     import time
     from concurrent.futures import ThreadPoolExecutor
 
+    from slam6d.io.order import SCAN_ORDERS
     from slam6d.io.registry import ReadOptions, read_sequence, resolve_format
+
+    if order not in SCAN_ORDERS:
+        raise typer.BadParameter(f"--order must be one of {', '.join(SCAN_ORDERS)}, got {order!r}")
 
     def make_config() -> Any:
         from slam6d.engine_settings import pipeline_config
@@ -350,6 +376,7 @@ def run(
                 "metascan_scans": metascan_scans,
                 "icp": {"max_distance": max_distance, "method": method},
                 "octree_guess": guess,
+                "feature_guess": feature_guess,
                 "loops": loops,
                 "loop_closing": loop_closing,
                 "relaxation": relaxation,
@@ -374,7 +401,14 @@ def run(
                         raise _BadOptions
 
                 sequence = read_sequence(
-                    source, fmt, ReadOptions(min_range, max_range), first, last, poses, progress=read_progress
+                    source,
+                    fmt,
+                    ReadOptions(min_range, max_range),
+                    first,
+                    last,
+                    poses,
+                    progress=read_progress,
+                    order=order,
                 )
         except _BadOptions:
             pass
@@ -384,10 +418,30 @@ def run(
         except (ValueError, Slam6dError) as exc:
             raise typer.BadParameter(str(exc)) from None
     from slam6d.pipeline import Pipeline, write_results
+    from slam6d.posegraph import describe_components
 
     pipeline = Pipeline(sequence, config)
-    with progress_bar("registering") as update:
-        report = pipeline.run(progress=lambda _stage, done, total: update(done, total))
+    try:
+        with progress_bar("registering") as update:
+            report = pipeline.run(progress=lambda _stage, done, total: update(done, total))
+    except Slam6dError as exc:
+        if pipeline.report is None or pipeline.report.failure is None:
+            raise
+        # the stages before the failed one are kept: their poses and a report saying what failed
+        paths = write_results(
+            pipeline, out, {"read_seconds": read_seconds, "wall_seconds": time.perf_counter() - began}
+        )
+        failure = pipeline.report.failure
+        err.print(f"[red]error:[/red] the {failure.stage} stage failed: {exc}")
+        if pipeline.report.components:
+            err.print(
+                f"each connected component was relaxed on its own: {describe_components(pipeline.report.components)}"
+            )
+        err.print(
+            f"wrote the poses it has ({pipeline.report.registered_scans} of {len(sequence)} scans registered) to "
+            f"{paths['poses']} and the failure to {paths['report']}"
+        )
+        raise typer.Exit(STAGE_FAILED) from None
     paths = write_results(pipeline, out, {"read_seconds": read_seconds, "wall_seconds": time.perf_counter() - began})
     closed = ", ".join(f"{i}-{j}" for i, j in report.loops_closed) or "none"
     typer.echo(f"{len(sequence)} scans registered; loops closed: {closed}")
@@ -399,6 +453,9 @@ def run(
     stages = ", ".join(f"{k} {v:.2f}s" for k, v in report.stage_seconds.items())
     typer.echo(f"times: reading {read_seconds:.2f}s, {stages}; total {time.perf_counter() - began:.2f}s")
     typer.echo(f"wrote {paths['poses']}, {paths['report']} and {len(sequence)} .frames files")
+
+
+STAGE_FAILED = 3  # exit code of `slam6d run` when a stage failed after earlier ones wrote their results
 
 
 @app.command()

@@ -44,6 +44,19 @@ class RelaxationError(Slam6dError):
     """Global relaxation cannot run or did not produce a usable result; the message says why."""
 
 
+class DisconnectedGraphError(RelaxationError):
+    """Some scans share no edge path with a fixed scan, so their poses are undetermined.
+
+    ``components`` holds every connected component of the graph (scan indices, each sorted, the
+    components ordered by their first scan), so a caller can relax each on its own and show the
+    operator which groups to bridge.
+    """
+
+    def __init__(self, message: str, components: list[list[int]]) -> None:
+        self.components = components
+        super().__init__(message)
+
+
 class SessionError(Slam6dError):
     """A session folder is missing, malformed, or an operation on its journal is impossible."""
 

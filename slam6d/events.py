@@ -25,8 +25,10 @@ __all__ = [
     "PipelineReport",
     "RelaxationProgressed",
     "ScanRegistered",
+    "ScanSkipped",
     "ScanStarted",
     "ScanSummary",
+    "StageFailure",
 ]
 
 
@@ -36,6 +38,7 @@ class ScanStarted:
     initial: Matrix  # world_from_scan ICP starts from
     guess: GuessResult | None
     model_indices: list[int]
+    source: str = "start"  # where ``initial`` came from: start (prediction), octree or features
 
 
 @dataclass
@@ -50,6 +53,17 @@ class ScanRegistered:
     index: int
     pose: Matrix
     result: ICPResult
+
+
+@dataclass
+class ScanSkipped:
+    """Scan ``index`` could not be registered (no start led ICP to enough point pairs); it keeps its
+    predicted ``pose`` and the next scans are registered on from it, so the run goes on and the map
+    falls apart into pieces the operator can bridge, instead of stopping."""
+
+    index: int
+    pose: Matrix
+    reason: str
 
 
 @dataclass
@@ -82,6 +96,20 @@ class ScanSummary:
     converged: bool = False
     octree_guess: bool = False
     seconds: float = 0.0
+    start: str = "start"  # the start the kept ICP result came from: start (prediction), octree or features
+    starts_tried: list[str] = field(default_factory=list)
+    registered: bool = True  # False: no start gave ICP enough pairs; the scan kept its predicted pose
+    failure: str = ""  # why it was not registered
+
+
+@dataclass
+class StageFailure:
+    """Why a run stopped early: the stage that failed (``registration``, ``loops``, ``relaxation``),
+    the error's message and class. The poses of the stages before it are kept and written."""
+
+    stage: str
+    reason: str
+    error: str
 
 
 @dataclass
@@ -100,6 +128,11 @@ class PipelineReport:
     max_range: float
     settings: dict[str, Any]
     scan_summaries: list[ScanSummary] = field(default_factory=list)
+    registered_scans: int = 0  # scans placed by sequential registration (all of them unless it failed)
+    skipped_scans: list[int] = field(default_factory=list)  # scans no start could register (see ScanSkipped)
+    failure: StageFailure | None = None  # None when every stage finished
+    # connected components of the relaxation's graph when it had more than one, each relaxed on its own
+    components: list[list[int]] = field(default_factory=list)
 
 
 @dataclass
@@ -107,4 +140,13 @@ class Finished:
     report: PipelineReport
 
 
-Event = ScanStarted | IcpIterated | ScanRegistered | LoopsDetected | LoopClosed | RelaxationProgressed | Finished
+Event = (
+    ScanStarted
+    | IcpIterated
+    | ScanRegistered
+    | ScanSkipped
+    | LoopsDetected
+    | LoopClosed
+    | RelaxationProgressed
+    | Finished
+)

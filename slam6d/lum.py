@@ -322,6 +322,7 @@ def lum_relaxation(
     members: Iterable[int] | None = None,
     progress: Progress | None = None,
     cancel: Callable[[], bool] | None = None,
+    links: Iterable[tuple[int, int]] = (),
 ) -> RelaxationResult:
     """LUM: all scans solved at once from the closest-point pairs of all neighbour pairs (module docstring).
 
@@ -330,10 +331,12 @@ def lum_relaxation(
     round's, at the starting poses; after is the last round's, at the poses it started from when
     that round ended the relaxation by settling (at the final robust scale its step moved no scan
     by more than ``settle_fraction`` of that scale, or changed the robust cost by less than
-    ``chi2_tolerance``), otherwise one more query at the final poses.
+    ``chi2_tolerance``), otherwise one more query at the final poses. ``links`` (scan pairs
+    registered one onto the other) stay in the graph with any point pairs at all
+    (:func:`slam6d.relax.neighbour_pairs`).
     """
     began = time.perf_counter()
-    before, current, chosen, fixed_set, pairs = set_up(models, poses, fixed, members, config)
+    before, current, chosen, fixed_set, pairs = set_up(models, poses, fixed, members, config, links)
     graph_pairs = _strongest(pairs, len(models), config.max_neighbours)
     check_graph(models, graph_pairs, fixed_set, chosen)
     batches = _batches(models, graph_pairs, _edge_budget(models, graph_pairs, config))

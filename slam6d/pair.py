@@ -2,7 +2,10 @@
 
 The start comes from the scans' own poses when both files carry one (so odometry is used, as the
 method prescribes), else identity; the octree search then widens the basin of convergence before
-ICP refines. The result keeps both traces so a caller can show how the answer was reached.
+ICP refines, and when ICP from its winner still fits poorly, the feature-based global search
+(:mod:`slam6d.features`, FPFH + RANSAC) proposes a start that does not depend on the first one.
+The result keeps every attempt (where ICP started, how it fitted) and which one won, with the
+traces of both searches, so a caller can show how the answer was reached.
 """
 
 from __future__ import annotations
@@ -13,18 +16,35 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from slam6d.errors import RegistrationError
+from slam6d.features import FeatureConfig, FeatureGuess, feature_guess
 from slam6d.geometry import Matrix, invert
 from slam6d.icp import ICPConfig, ICPResult, icp
 from slam6d.initial_guess import GuessResult, OctreeSearchConfig, octree_guess
 from slam6d.scan import Scan
 
-GUESS_CHOICES = ("auto", "octree", "none")
+GUESS_CHOICES = ("auto", "octree", "features", "none")
 MIN_FITNESS = 0.3  # as the pipeline's default: below it a match from the poses counts as poor
 
 
 @dataclass
+class Attempt:
+    """One ICP run of a pair: where its start came from (``start``: the poses; ``octree``; ``features``),
+    that start, and how ICP from it ended (fitness and RMS, or the error)."""
+
+    source: str
+    start: Matrix
+    fitness: float
+    rms: float
+    error: str = ""
+
+
+@dataclass
 class PairRegistration:
-    """``transform`` maps the data scan's points into the model scan's frame (canonical metres)."""
+    """``transform`` maps the data scan's points into the model scan's frame (canonical metres).
+
+    ``attempts`` lists every ICP run in order and ``winner`` names the source of the one kept;
+    ``guess`` and ``features`` are the octree and feature searches' traces when they ran.
+    """
 
     transform: Matrix
     initial: Matrix
@@ -33,6 +53,9 @@ class PairRegistration:
     model_name: str = ""
     data_name: str = ""
     seconds: dict[str, float] = field(default_factory=dict)
+    features: FeatureGuess | None = None
+    attempts: list[Attempt] = field(default_factory=list)
+    winner: str = "start"
 
 
 Outcome = ICPResult | RegistrationError
@@ -68,28 +91,74 @@ def register_pair(
     search_config: OctreeSearchConfig | None = None,
     initial: Matrix | None = None,
     min_fitness: float = MIN_FITNESS,
+    feature_config: FeatureConfig | None = None,
 ) -> PairRegistration:
-    """ICP from ``initial`` (default: the scans' poses), with the octree search before it.
+    """ICP from ``initial`` (default: the scans' poses), with the octree or feature search before it.
 
-    ``guess``: ``octree`` always searches first; ``none`` never does; ``auto`` searches when the
-    scans carry no poses, or when ICP from the poses fails or pairs under ``min_fitness`` of the
-    data, and then keeps whichever ICP result fits better. Searching only when needed matters:
-    the cube-overlap score can prefer co-located scanners on range-limited scans, so a good
-    odometry start is worth more than a search.
+    ``guess``: ``octree`` always searches near the start first; ``features`` always takes the
+    feature-based global guess; ``none`` never searches; ``auto`` searches when the scans carry no
+    poses, or when ICP from the poses fails or pairs under ``min_fitness`` of the data, and when ICP
+    from the octree winner is poor too, tries the feature guess; it keeps whichever ICP result fits
+    best. Searching only when needed matters: the cube-overlap score can prefer co-located scanners
+    on range-limited scans, so a good odometry start is worth more than a search.
     """
     if guess not in GUESS_CHOICES:
         raise ValueError(f"guess must be one of {GUESS_CHOICES}, got {guess!r}")
     start = initial_transform(model, data) if initial is None else np.asarray(initial, dtype=np.float64)
     seconds: dict[str, float] = {}
-    search_first = guess == "octree" or (guess == "auto" and initial is None and not (model.has_pose and data.has_pose))
-    guess_result = _search(model, data, start, search_config, seconds) if search_first else None
-    outcome = _icp(model, data, guess_result.transform if guess_result else start, icp_config, seconds)
-    if guess == "auto" and guess_result is None and is_poor(outcome, min_fitness):
-        guess_result = _search(model, data, start, search_config, seconds)
-        outcome = better_fit(outcome, _icp(model, data, guess_result.transform, icp_config, seconds))
+    attempts: list[Attempt] = []
+    tried: list[tuple[str, Outcome]] = []
+
+    def attempt(source: str, begin: Matrix) -> Outcome:
+        outcome = _icp(model, data, begin, icp_config, seconds)
+        tried.append((source, outcome))
+        if isinstance(outcome, RegistrationError):
+            attempts.append(Attempt(source, begin, 0.0, float("nan"), str(outcome)))
+        else:
+            attempts.append(Attempt(source, begin, outcome.fitness, outcome.rms))
+        return outcome
+
+    octree: GuessResult | None = None
+    features: FeatureGuess | None = None
+    if guess == "features":
+        features = _features(model, data, feature_config, seconds)
+        outcome = attempt("features", features.transform)
+    else:
+        search_first = guess == "octree" or (
+            guess == "auto" and initial is None and not (model.has_pose and data.has_pose)
+        )
+        if search_first:
+            octree = _search(model, data, start, search_config, seconds)
+            outcome = attempt("octree", octree.transform)
+        else:
+            outcome = attempt("start", start)
+        if guess == "auto" and octree is None and is_poor(outcome, min_fitness):
+            octree = _search(model, data, start, search_config, seconds)
+            outcome = better_fit(outcome, attempt("octree", octree.transform))
+        if guess == "auto" and is_poor(outcome, min_fitness):
+            features = _features(model, data, feature_config, seconds)
+            outcome = better_fit(outcome, attempt("features", features.transform))
     if isinstance(outcome, RegistrationError):
         raise RegistrationError(f"{data.name} onto {model.name}: {outcome}") from outcome
-    return PairRegistration(outcome.transform, start, outcome, guess_result, model.name, data.name, seconds)
+    return PairRegistration(
+        outcome.transform,
+        start,
+        outcome,
+        octree,
+        model.name,
+        data.name,
+        seconds,
+        features=features,
+        attempts=attempts,
+        winner=next(source for source, kept in tried if kept is outcome),
+    )
+
+
+def _features(model: Scan, data: Scan, config: FeatureConfig | None, seconds: dict[str, float]) -> FeatureGuess:
+    began = time.perf_counter()
+    result = feature_guess(model.points, data.points, config)
+    seconds["feature_guess"] = seconds.get("feature_guess", 0.0) + time.perf_counter() - began
+    return result
 
 
 def _search(

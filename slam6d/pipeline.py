@@ -35,7 +35,7 @@ from typing import Any
 
 import numpy as np
 
-from slam6d.errors import RegistrationError, Slam6dError
+from slam6d.errors import DisconnectedGraphError, RegistrationError, RelaxationError, Slam6dError
 from slam6d.events import (
     Event,
     Finished,
@@ -45,9 +45,12 @@ from slam6d.events import (
     PipelineReport,
     RelaxationProgressed,
     ScanRegistered,
+    ScanSkipped,
     ScanStarted,
     ScanSummary,
+    StageFailure,
 )
+from slam6d.features import feature_guess
 from slam6d.geometry import Matrix, invert
 from slam6d.graph_relaxation import GraphEdge, trajectory_graph
 from slam6d.icp import ICPConfig, ICPIteration, ICPResult, icp_iterations
@@ -108,6 +111,8 @@ class PipelineConfig:
     millimetre there buys nothing (benchmark loop: 15 % less registration time than at 0.5 mm, ATE
     after relaxation 0.187 cm either way; BALM hall RPE 0.53 cm either way).
     ``max_range`` (the laser's reach) bounds loop hypotheses; None estimates it from the scans.
+    ``feature_guess`` lets a scan whose ICP still fits poorly after the octree search try the global
+    FPFH + RANSAC guess (:mod:`slam6d.features`) too (not with ``octree_guess="never"``).
     """
 
     voxel_size: float = 0.1
@@ -126,6 +131,7 @@ class PipelineConfig:
     registration_epsilon: float = 1e-3
     min_fitness: float = MIN_FITNESS
     guess: OctreeSearchConfig | None = None
+    feature_guess: bool = True
     loop: LoopConfig = field(default_factory=LoopConfig)
     relax: RelaxationConfig = field(default_factory=RelaxationConfig)
 
@@ -177,6 +183,10 @@ class Pipeline:
         self.loops_closed: list[tuple[int, int]] = []
         self.relaxation_result: RelaxationResult | None = None
         self.report: PipelineReport | None = None
+        self.failure: StageFailure | None = None
+        self.components: list[list[int]] = []
+        self.skipped: list[int] = []  # scans sequential registration could not place (ScanSkipped)
+        self.links: list[tuple[int, int]] = []  # (model scan, scan) of every sequential registration
         self._cancel: Callable[[], bool] | None = None
         self._icp_config = models_icp_config(config.icp, config.voxel_size)  # the models are reduced already
         # sequential matches only need to hand loop closing and relaxation a close start
@@ -222,7 +232,9 @@ class Pipeline:
         while not self.done:
             event = self.step()
             events.append(event)
-            if isinstance(event, ScanRegistered | LoopClosed | LoopsDetected | RelaxationProgressed | Finished):
+            if isinstance(
+                event, ScanRegistered | ScanSkipped | LoopClosed | LoopsDetected | RelaxationProgressed | Finished
+            ):
                 break
         return events
 
@@ -231,16 +243,23 @@ class Pipeline:
         progress: Callable[[str, int, int], None] | None = None,
         cancel: Callable[[], bool] | None = None,
     ) -> PipelineReport:
-        """Run to the end; ``progress(stage, done, total)``; raises :class:`Cancelled` when ``cancel()`` turns true."""
+        """Run to the end; ``progress(stage, done, total)``; raises :class:`Cancelled` when ``cancel()`` turns true.
+
+        A stage that fails (or a cancellation) raises, but only after :attr:`report` has been made
+        with :attr:`PipelineReport.failure` naming the stage and the reason: the poses of the stages
+        before it stay in :attr:`poses` for :func:`write_results`.
+        """
         self._cancel = cancel
         count = len(self.sequence)
         while not self.done:
             if cancel is not None and cancel():
-                raise Cancelled(f"run cancelled during {self.stage}")
+                cancelled = Cancelled(f"run cancelled during {self.stage}")
+                self._fail(cancelled)
+                raise cancelled
             event = self.step()
             if progress is None:
                 continue
-            if isinstance(event, ScanRegistered):
+            if isinstance(event, ScanRegistered | ScanSkipped):
                 progress("registration", event.index + 1, count)
             elif isinstance(event, LoopsDetected) and event.hypotheses:
                 progress("loops", event.hypotheses[0].j + 1, count)
@@ -334,9 +353,26 @@ class Pipeline:
         for k in range(index + 1, len(self.poses)):
             self.poses[k] = anchor @ self.odometry[k] if self.has_odometry[k] else self.poses[index].copy()
 
+    def _fail(self, error: Slam6dError) -> None:
+        """Record why the run stops and make the report of what it has (see :meth:`run`)."""
+        self.failure = StageFailure(self.stage, str(error), type(error).__name__)
+        self.done = True
+        self._finish_preparing()
+        self.report = self._make_report()
+
     # -- the generator
 
     def _events(self) -> Iterator[Event]:
+        try:
+            yield from self._stages()
+        except Slam6dError as error:  # Cancelled included; the stages' results so far are kept
+            self._fail(error)
+            raise
+        self.stage = "finished"
+        self.report = self._make_report()
+        yield Finished(self.report)
+
+    def _stages(self) -> Iterator[Event]:
         self.stage = "registration"
         self.history[0].append((self.poses[0].copy(), FrameType.ICP))
         for index in range(1, len(self.sequence)):
@@ -349,9 +385,12 @@ class Pipeline:
         if self.config.relaxation != "none" and len(self.sequence) > 1:
             self.stage = "relaxation"
             yield from self._relax_stage()
-        self.stage = "finished"
-        self.report = self._make_report()
-        yield Finished(self.report)
+        elif self.skipped:  # nothing else could tell that the map fell apart
+            self.stage = "registration"
+            raise RegistrationError(
+                f"{len(self.skipped)} scan(s) could not be registered: {self.summaries[self.skipped[0]].failure}"
+                + (" ..." if len(self.skipped) > 1 else "")
+            )
 
     def _start_pose(self, index: int) -> Matrix:
         prev = self.poses[index - 1]
@@ -383,6 +422,11 @@ class Pipeline:
         result.transform = prev @ result.transform
         return result
 
+    def _feature_guess(self, index: int) -> Matrix:
+        """The global FPFH + RANSAC guess against the previous scan, in world coordinates."""
+        prev = self.poses[index - 1]
+        return prev @ feature_guess(self.models.points[index - 1], self.models.points[index]).transform
+
     def _run_icp(
         self, index: int, model: ModelIndex, world_from_model: Matrix, start_world: Matrix
     ) -> Generator[Event, None, Outcome]:
@@ -400,29 +444,64 @@ class Pipeline:
             return exc
         return ICPResult.from_iterations(iterations, len(data), self._icp_config.method, world_from_model)
 
+    def _search_first(self, index: int) -> bool:
+        """Whether the octree search runs before the first ICP of scan ``index``: always with
+        ``octree_guess="always"``; with ``auto`` only when there is neither odometry nor a previous
+        motion to extrapolate (the second scan, or the one after a scan that could not be registered).
+        Otherwise ICP starts from the prediction and the searches run only if its fit is poor: a
+        search costs more than the ICP it spares, and a good prediction is worth more than a search."""
+        if self.config.octree_guess != "auto":
+            return self.config.octree_guess == "always"
+        motion_known = index >= 2 and (index - 1) not in self.skipped
+        return not self.has_odometry[index] and not motion_known
+
     def _register(self, index: int) -> Iterator[Event]:
+        """ICP from the prediction (odometry, else constant velocity); when it fits poorly (or fails),
+        ICP again from the octree winner and then from the feature guess, keeping the best fit."""
         began = time.perf_counter()
         cfg = self.config
-        start = self._start_pose(index)
+        start = predicted = self._start_pose(index)
         guess = None
-        if cfg.octree_guess == "always" or (cfg.octree_guess == "auto" and not self.has_odometry[index]):
+        source = "start"
+        if self._search_first(index):
             guess = self._guess(index, start)
-            start = guess.transform
+            start, source = guess.transform, "octree"
         model, world_from_model, members = self._model(index)
-        yield ScanStarted(index, start.copy(), guess, members)
+        yield ScanStarted(index, start.copy(), guess, members, source)
         outcome = yield from self._run_icp(index, model, world_from_model, start)
+        tries: list[tuple[str, Outcome]] = [(source, outcome)]
         if is_poor(outcome, cfg.min_fitness) and cfg.octree_guess == "auto" and guess is None:
             guess = self._guess(index, start)
-            yield ScanStarted(index, guess.transform.copy(), guess, members)
+            yield ScanStarted(index, guess.transform.copy(), guess, members, "octree")
             second = yield from self._run_icp(index, model, world_from_model, guess.transform)
+            tries.append(("octree", second))
             outcome = better_fit(outcome, second)
+        if is_poor(outcome, cfg.min_fitness) and cfg.feature_guess and cfg.octree_guess != "never":
+            features = self._feature_guess(index)
+            yield ScanStarted(index, features.copy(), None, members, "features")
+            third = yield from self._run_icp(index, model, world_from_model, features)
+            tries.append(("features", third))
+            outcome = better_fit(outcome, third)
+        self.summaries[index].start = next(name for name, tried in tries if tried is outcome)
+        self.summaries[index].starts_tried = [name for name, _ in tries]
+        summary = self.summaries[index]
         if isinstance(outcome, RegistrationError):
-            name = self.summaries[index].name
-            raise RegistrationError(f"scan {index} ({name}) could not be registered: {outcome}") from outcome
+            # the run goes on from the prediction: the scans after it still register among themselves,
+            # and relaxation names the pieces (components) that result
+            reason = f"scan {index} ({summary.name}) could not be registered: {outcome}"
+            self._set_pose(index, predicted, FrameType.ICP_INACTIVE)
+            self._carry_unregistered(index)
+            self.registered = index + 1
+            self.skipped.append(index)
+            summary.registered, summary.failure = False, reason
+            summary.octree_guess = guess is not None
+            summary.seconds = time.perf_counter() - began
+            yield ScanSkipped(index, self.poses[index].copy(), reason)
+            return
         self._set_pose(index, outcome.transform, FrameType.ICP)
         self._carry_unregistered(index)
         self.registered = index + 1
-        summary = self.summaries[index]
+        self.links.append((members[-1], index))
         summary.icp_iterations = len(outcome.iterations)
         summary.rms, summary.fitness, summary.converged = outcome.rms, outcome.fitness, outcome.converged
         summary.octree_guess = guess is not None
@@ -484,17 +563,31 @@ class Pipeline:
                 if model is not self.models.index(k):
                     self.models.share_plane_model(k, model)
         # the graph method relaxes over the trajectory and the loops this run accepted
-        loops = [GraphEdge(h.i, h.j, h.transform) for h in self.loops if h.accepted]
-        result = relax_poses(
-            self.config.relaxation,
-            self.models,
-            self.poses,
-            trajectory_graph(len(self.sequence), loops),
-            fixed=(0,),
-            config=self.config.relax,
-            progress=record,
-            cancel=self._cancel,
+        edges = trajectory_graph(
+            len(self.sequence), [GraphEdge(h.i, h.j, h.transform) for h in self.loops if h.accepted]
         )
+
+        def relax(fixed: tuple[int, ...], members: list[int] | None = None) -> RelaxationResult:
+            return relax_poses(
+                self.config.relaxation,
+                self.models,
+                self.poses,
+                edges,
+                fixed=fixed,
+                config=self.config.relax,
+                progress=record,
+                cancel=self._cancel,
+                members=members,
+                links=self.links,  # a sequential registration is an edge, however sparse the overlap
+            )
+
+        disconnected: DisconnectedGraphError | None = None
+        try:
+            result = relax(fixed=(0,))
+        except DisconnectedGraphError as error:
+            disconnected = error
+            self.components = error.components
+            result = self._relax_components(relax, error.components)
         self.relaxation_result = result
         flag = FrameType.LUM if self.config.relaxation in ("lum", "graph") else FrameType.ICP
         for k, pose in enumerate(result.poses):
@@ -502,6 +595,52 @@ class Pipeline:
         yield from progress
         if not progress:
             yield RelaxationProgressed(result.iterations, result.residual_after, [])
+        if disconnected is not None:  # each part is relaxed, but they are not one map: the stage failed
+            raise disconnected
+
+    def _relax_components(
+        self,
+        relax: Callable[..., RelaxationResult],
+        components: list[list[int]],
+    ) -> RelaxationResult:
+        """Relax every connected component of more than one scan on its own, anchored at its first scan.
+
+        Scans of the other components keep their poses (the relaxation would otherwise carry them along
+        with the correction of the scan before them). A component that cannot be relaxed (e.g. a
+        singular graph) keeps its poses too. The residuals reported are RMS over the relaxed components.
+        """
+        poses = [p.copy() for p in self.poses]
+        parts: list[RelaxationResult] = []
+        for component in components:
+            if len(component) < 2:
+                continue
+            try:
+                part = relax(fixed=(component[0],), members=component)
+            except Cancelled:
+                raise
+            except RelaxationError:
+                continue
+            for k in component:
+                poses[k] = part.poses[k]
+            parts.append(part)
+
+        def combined(values: list[tuple[float | None, int]]) -> float:
+            known = [(v, n) for v, n in values if v is not None and np.isfinite(v) and n > 0]
+            total = sum(n for _, n in known)
+            return float(np.sqrt(sum(v * v * n for v, n in known) / total)) if total else float("nan")
+
+        sizes = [max(len(part.neighbours), 1) for part in parts]
+        return RelaxationResult(
+            poses=poses,
+            residual_before=combined([(part.residual_before, n) for part, n in zip(parts, sizes, strict=True)]),
+            residual_after=combined([(part.residual_after, n) for part, n in zip(parts, sizes, strict=True)]),
+            iterations=max((part.iterations for part in parts), default=0),
+            method=self.config.relaxation,
+            neighbours=[pair for part in parts for pair in part.neighbours],
+            chi2_before=None,
+            chi2_after=None,
+            seconds=sum(part.seconds for part in parts),
+        )
 
     def _make_report(self) -> PipelineReport:
         r = self.relaxation_result
@@ -520,6 +659,10 @@ class Pipeline:
             max_range=self.max_range(),
             settings=to_jsonable(self.config),
             scan_summaries=list(self.summaries),
+            registered_scans=self.registered - len(self.skipped),
+            skipped_scans=list(self.skipped),
+            failure=self.failure,
+            components=[list(c) for c in self.components],
         )
 
 

@@ -27,7 +27,7 @@ from cvxopt import cholmod
 from numpy.typing import NDArray
 
 from slam6d.block_system import BlockSystem
-from slam6d.errors import RelaxationError
+from slam6d.errors import DisconnectedGraphError, RelaxationError
 from slam6d.geometry import Matrix, invert, skew, so3_exp, so3_log
 
 
@@ -122,23 +122,60 @@ def _components(count, first, second):  # type: ignore[no-untyped-def]
     return labels
 
 
-def check_connected(
-    count: int, edge_pairs: Iterable[tuple[int, int]] | NDArray[np.int64], fixed: Iterable[int]
-) -> None:
-    """Every pose must be tied to a fixed pose through edges, or its position is undetermined.
+EdgePairs = Iterable[tuple[int, int]] | NDArray[np.int64]
 
-    ``edge_pairs`` may be an (edges, 2) array, which spares a large graph the round trip through tuples.
-    """
+
+def _labels(count: int, edge_pairs: EdgePairs) -> NDArray[np.int64]:
     pairs = np.asarray(edge_pairs if isinstance(edge_pairs, np.ndarray) else list(edge_pairs), dtype=np.int64)
     pairs = pairs.reshape(-1, 2)
-    labels = _components(count, np.ascontiguousarray(pairs[:, 0]), np.ascontiguousarray(pairs[:, 1]))
+    return _components(count, np.ascontiguousarray(pairs[:, 0]), np.ascontiguousarray(pairs[:, 1]))
+
+
+def connected_components(count: int, edge_pairs: EdgePairs) -> list[list[int]]:
+    """The scans of each connected component (sorted), components ordered by their first scan."""
+    labels = _labels(count, edge_pairs)
+    groups: dict[int, list[int]] = {}
+    for k, label in enumerate(labels.tolist()):
+        groups.setdefault(label, []).append(k)
+    return sorted(groups.values(), key=lambda group: group[0])
+
+
+def describe_components(components: Sequence[Sequence[int]], limit: int = 8) -> str:
+    """``0-7, 8-29`` style summary: runs of consecutive scans collapsed, at most ``limit`` components."""
+
+    def runs(group: Sequence[int]) -> str:
+        parts: list[str] = []
+        start = prev = group[0]
+        for k in [*group[1:], None]:
+            if k is not None and k == prev + 1:
+                prev = k
+                continue
+            parts.append(str(start) if start == prev else f"{start}-{prev}")
+            if k is not None:
+                start = prev = k
+        return ",".join(parts)
+
+    shown = "; ".join(f"[{runs(group)}]" for group in components[:limit])
+    return shown + (f"; ... ({len(components)} in all)" if len(components) > limit else "")
+
+
+def check_connected(count: int, edge_pairs: EdgePairs, fixed: Iterable[int]) -> None:
+    """Every pose must be tied to a fixed pose through edges, or its position is undetermined.
+
+    ``edge_pairs`` may be an (edges, 2) array, which spares a large graph the round trip through
+    tuples. Raises :class:`DisconnectedGraphError` naming every component otherwise.
+    """
+    labels = _labels(count, edge_pairs)
     anchored = [int(labels[f]) for f in fixed]
     loose = np.flatnonzero(~np.isin(labels, anchored)).tolist()
     if loose:
         shown = ", ".join(str(k) for k in loose[:12]) + (" ..." if len(loose) > 12 else "")
-        raise RelaxationError(
-            f"the pose graph is disconnected: {len(loose)} scan(s) ({shown}) share no edge path with a fixed scan; "
-            "they do not overlap the rest enough (more point pairs, a larger max distance or odometry edges needed)"
+        components = connected_components(count, edge_pairs)
+        raise DisconnectedGraphError(
+            f"the pose graph is disconnected: {len(loose)} scan(s) ({shown}) share no edge path with a fixed scan "
+            f"(components {describe_components(components)}); they do not overlap the rest enough "
+            "(more point pairs, a larger max distance or odometry edges needed)",
+            components,
         )
 
 

@@ -203,8 +203,13 @@ def neighbour_pairs(
     min_pairs: int = 250,
     members: Iterable[int] | None = None,
     sample: int = 200,
+    links: Iterable[tuple[int, int]] = (),
 ) -> list[NeighbourPair]:
     """Scan pairs with more than ``min_pairs`` closest-point pairs at the current poses.
+
+    A pair in ``links`` (scans registered one onto the other, e.g. consecutive scans of sequential
+    matching) is kept with any closest-point pairs at all: the registration related the two scans,
+    so a sparse scan whose overlap falls under ``min_pairs`` must not cut the graph there.
 
     Only pairs whose scanned regions can touch (distance below the sum of their 95th-percentile
     ranges) are counted, on an evenly thinned copy of the data scan scaled back up; that turns an
@@ -213,6 +218,7 @@ def neighbour_pairs(
     keeps that estimate; only the others are counted on the full ``sample``.
     """
     chosen = sorted(set(range(len(models))) if members is None else set(members))
+    linked = {(min(i, j), max(i, j)) for i, j in links}
     extents = np.array([models.extent(k) for k in chosen])
     centres = np.array([poses[k][:3, 3] for k in chosen])
     found = []
@@ -230,7 +236,7 @@ def neighbour_pairs(
             hits[~sure], sizes[~sure] = _hits(models, poses, i, unsure, sample)
         for j, hit, size in zip(near, hits, sizes, strict=True):
             count = int(hit * len(models.points[j]) / size)
-            if count > min_pairs:
+            if count > min_pairs or (count > 0 and (i, j) in linked):
                 found.append(NeighbourPair(i, j, count))
     return found
 
@@ -300,14 +306,16 @@ def set_up(
     fixed: Iterable[int],
     members: Iterable[int] | None,
     config: RelaxationConfig,
+    links: Iterable[tuple[int, int]] = (),
 ) -> tuple[list[Matrix], list[Matrix], list[int], set[int], list[NeighbourPair]]:
     """What both relaxations start from: poses before and working copies, the scans taking part,
-    the fixed ones among them (the first member when none is), and the overlapping pairs."""
+    the fixed ones among them (the first member when none is), and the overlapping pairs (``links``:
+    see :func:`neighbour_pairs`)."""
     before = [np.array(p) for p in poses]
     current = [np.array(p) for p in poses]
     chosen = sorted(set(range(len(models))) if members is None else set(members))
     fixed_set = {f for f in fixed if f in chosen} or {chosen[0]}
-    return before, current, chosen, fixed_set, neighbour_pairs(models, current, config.min_pairs, chosen)
+    return before, current, chosen, fixed_set, neighbour_pairs(models, current, config.min_pairs, chosen, links=links)
 
 
 def check_graph(models: ScanModels, pairs: Sequence[NeighbourPair], fixed: set[int], chosen: list[int]) -> None:

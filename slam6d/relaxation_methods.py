@@ -62,18 +62,33 @@ def relax_poses(
     progress: Progress | None = None,
     cancel: Callable[[], bool] | None = None,
     edge_progress: Callable[[int, int], None] | None = None,
+    members: Iterable[int] | None = None,
+    links: Iterable[tuple[int, int]] = (),
 ) -> RelaxationResult:
     """Relax ``poses`` with the method named (table above); ``edges`` is the graph ``graph`` relaxes over.
 
-    ``progress(round, residual, moved)`` after each round; ``edge_progress(done, total)`` after each
-    edge's ICP (``graph`` only); :class:`~slam6d.errors.Cancelled` when ``cancel()`` turns true.
+    ``members`` restricts the relaxation to those scans (one connected component; the others keep
+    their poses); ``links`` are pairs registered to each other (a sequential registration), kept as
+    neighbours by ``lum`` and ``simultaneous`` however little they overlap (``graph`` has them as
+    edges already). ``progress(round, residual, moved)`` after each round; ``edge_progress(done,
+    total)`` after each edge's ICP (``graph`` only); :class:`~slam6d.errors.Cancelled` when
+    ``cancel()`` turns true.
     """
     fixed = list(fixed)
     current = [np.asarray(p, dtype=np.float64) for p in poses]
+    links = list(links)
     if method == "lum":
-        return lum_relaxation(models, current, fixed=fixed, config=config, progress=progress, cancel=cancel)
+        return lum_relaxation(
+            models, current, fixed=fixed, config=config, members=members, progress=progress, cancel=cancel, links=links
+        )
     if method == "simultaneous":
-        return simultaneous_matching(models, current, fixed=fixed, config=config, progress=progress, cancel=cancel)
+        return simultaneous_matching(
+            models, current, fixed=fixed, config=config, members=members, progress=progress, cancel=cancel, links=links
+        )
     if method == "graph":
+        if members is not None:  # the other scans hold still, and only the component's own edges count
+            chosen = set(members)
+            fixed = sorted(set(fixed) | (set(range(len(current))) - chosen))
+            edges = [e for e in edges if e.i in chosen and e.j in chosen]
         return graph_relaxation(models, current, edges, fixed, config, progress, cancel, edge_progress)
     raise Slam6dError(f"unknown relaxation '{method}'; known: {', '.join(RELAXATION_METHODS)}")

@@ -9,6 +9,7 @@ mesh is built once per session; scans only cast against it.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cache
 
 import numpy as np
 import open3d as o3d
@@ -21,6 +22,18 @@ _BOX_FACES = np.array(
     [[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
      [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]]
 )  # fmt: skip
+
+
+@cache
+def _unit_sphere() -> tuple[NDArray[np.float64], NDArray[np.int64]]:
+    """A twice-subdivided icosahedron on the unit sphere (162 vertices), made once: a campus has hundreds of trees."""
+    sphere = o3d.geometry.TriangleMesh.create_icosahedron(1.0).subdivide_loop(2)
+    unit = np.asarray(sphere.vertices)
+    unit = unit / np.linalg.norm(unit, axis=1)[:, None]
+    unit.flags.writeable = False
+    triangles = np.asarray(sphere.triangles).astype(np.int64)
+    triangles.flags.writeable = False
+    return unit, triangles
 
 
 class MeshBuilder:
@@ -61,11 +74,9 @@ class MeshBuilder:
 
     def blob(self, center: NDArray[np.float64], radii: NDArray[np.float64], rng: np.random.Generator) -> None:
         """A lumpy ellipsoid, the crown of a tree."""
-        sphere = o3d.geometry.TriangleMesh.create_icosahedron(1.0).subdivide_loop(2)
-        unit = np.asarray(sphere.vertices)
-        unit = unit / np.linalg.norm(unit, axis=1)[:, None]
+        unit, triangles = _unit_sphere()
         lumps = 1.0 + 0.15 * rng.standard_normal(len(unit)).clip(-2, 2)
-        self.add(unit * lumps[:, None] * radii + center, np.asarray(sphere.triangles))
+        self.add(unit * lumps[:, None] * radii + center, triangles)
 
     def height_field(self, terrain: Terrain, xs: NDArray[np.float64], ys: NDArray[np.float64]) -> None:
         gx, gy = np.meshgrid(xs, ys)

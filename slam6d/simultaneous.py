@@ -94,10 +94,11 @@ def simultaneous_matching(
     start: int | None = None,
     progress: Progress | None = None,
     cancel: Callable[[], bool] | None = None,
+    links: Iterable[tuple[int, int]] = (),
 ) -> RelaxationResult:
     """The seed's simultaneous matching over the scans ``members`` (default all), see the module docstring."""
     began = time.perf_counter()
-    before, current, chosen, fixed_set, pairs = set_up(models, poses, fixed, members, config)
+    before, current, chosen, fixed_set, pairs = set_up(models, poses, fixed, members, config, links)
     check_graph(models, pairs, fixed_set, chosen)
     adjacent = adjacency(pairs, len(models))
     residual_before = pair_residual(models, current, pairs)

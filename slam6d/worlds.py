@@ -336,13 +336,12 @@ OUTDOOR = CityLayout(
     blocks=(3, 2), pitch=60.0, street_half_width=7.0, terrain_amplitude=1.5, terrain_wavelengths=(60.0, 160.0),
     loops=(((0, 0), (3, 0), (3, 2), (0, 2)),  # the perimeter, counter-clockwise
            ((0, 0), (1, 0), (1, 2), (3, 2), (3, 1), (0, 1))),  # two of its streets the other way
-
     park=(1, 1),
 )  # fmt: skip
 CAMPUS = CityLayout(
     blocks=(6, 4), pitch=80.0, street_half_width=8.0, terrain_amplitude=0.6, terrain_wavelengths=(200.0, 500.0),
     loops=(((0, 0), (1, 0), (1, 1), (0, 1)),  # small, counter-clockwise, up onto the deck first
-           ((0, 0), (3, 0), (3, 2), (1, 2), (1, 0.6625), (0, 0.6625)),  # medium, back along the first, under the deck
+           ((0, 0), (3, 0), (3, 2), (1, 2), (1, 0.6625), (0, 0.6625)),  # medium: a street of the first the other way, under the deck
            ((0, 0), (6, 0), (6, 4), (0, 4))),  # large, counter-clockwise
     # Every loop leaves the origin eastwards and comes back southwards: no U-turns between them.
     park=(4, 2),
@@ -373,6 +372,7 @@ class _Deck:
         return up + roof + up[::-1]
 
     def build(self, mesh: MeshBuilder, terrain: Terrain) -> None:
+        """The roof slab with its parapet, the columns, and the ramp with its side walls."""
         thickness = 0.4
         centre = np.r_[(self.x0 + self.x1) / 2, (self.y0 + self.y1) / 2]
         mesh.box(np.r_[centre, self.roof - thickness / 2], np.r_[self.x1 - self.x0, self.y1 - self.y0, thickness])
@@ -476,27 +476,35 @@ def _line_streets(mesh: MeshBuilder, terrain: Terrain, route: Route, layout: Cit
     """Along both sides of every street, every 6 m: a tree on the pavement (30 %), a car parked at
     the kerb (25 %), a lamp post (7 %) or nothing; intersections and the route's lanes kept clear."""
     nx, ny = layout.blocks
+    pitch = layout.pitch
+    centres, outwards, horizontals = [], [], []
     for horizontal in (True, False):
         lines, blocks = (ny + 1, nx) if horizontal else (nx + 1, ny)
+        along = np.arange(10.0, blocks * pitch - 9.0, 6.0)
+        along = along[(along % pitch >= 12.0) & (along % pitch <= pitch - 12.0)]  # not in an intersection
         for line in range(lines):
-            for along in np.arange(10.0, blocks * layout.pitch - 9.0, 6.0):
-                for side in (-1.0, 1.0):
-                    kind = rng.random()
-                    if not 12.0 <= along % layout.pitch <= layout.pitch - 12.0:
-                        continue  # an intersection
-                    centre = np.r_[along, line * layout.pitch] if horizontal else np.r_[line * layout.pitch, along]
-                    outward = np.r_[0.0, side] if horizontal else np.r_[side, 0.0]
-                    if kind < 0.3:
-                        crown = rng.uniform(1.2, 2.4)
-                        if route.distance(here := centre + 6.5 * outward)[0] > crown + 0.8:
-                            _tree(mesh, terrain, here, crown, rng)
-                            objects["trees"] += 1
-                    elif kind < 0.55 and route.distance(here := centre + 5.0 * outward)[0] > 2.3:
-                        _car(mesh, terrain, here, 0.0 if horizontal else np.pi / 2)
-                        objects["cars"] += 1
-                    elif kind > 0.93 and route.distance(here := centre + 7.2 * outward)[0] > 1.0:
-                        _pole(mesh, terrain, here)
-                        objects["poles"] += 1
+            for side in (-1.0, 1.0):
+                across = np.full(len(along), line * pitch)
+                centres.append(np.c_[along, across] if horizontal else np.c_[across, along])
+                outwards.append(np.tile([0.0, side] if horizontal else [side, 0.0], (len(along), 1)))
+                horizontals.append(np.full(len(along), horizontal))
+    centre, outward, horizontal_street = np.vstack(centres), np.vstack(outwards), np.concatenate(horizontals)
+    kind = rng.random(len(centre))
+    offset = np.where(kind < 0.3, 6.5, np.where(kind < 0.55, 5.0, 7.2))  # pavement, kerb, lamp line
+    spots = centre + offset[:, None] * outward
+    clearance = route.distance(spots)
+    for k in np.nonzero((kind < 0.55) | (kind > 0.93))[0]:
+        if kind[k] < 0.3:
+            crown = rng.uniform(1.2, 2.4)
+            if clearance[k] > crown + 0.8:
+                _tree(mesh, terrain, spots[k], crown, rng)
+                objects["trees"] += 1
+        elif kind[k] < 0.55 and clearance[k] > 2.3:
+            _car(mesh, terrain, spots[k], 0.0 if horizontal_street[k] else np.pi / 2)
+            objects["cars"] += 1
+        elif kind[k] > 0.93 and clearance[k] > 1.0:
+            _pole(mesh, terrain, spots[k])
+            objects["poles"] += 1
 
 
 WORLDS: dict[str, World] = {

@@ -19,8 +19,10 @@ from slam6d.initial_guess import (
     cloud_extent,
     config_for,
     extrapolate_odometry,
+    level_surfaces,
     octree_guess,
     offset_transform,
+    search_pivot,
 )
 from slam6d.io import read_sequence
 from slam6d.octree import Octree
@@ -165,7 +167,12 @@ def test_candidate_scores_are_the_cube_overlap_counts(hall_pair) -> None:
     fall in occupied model cubes."""
     model, data, truth = hall_pair
     config = OctreeSearchConfig(
-        cube_sizes=(0.5,), yaw_range=6 * DEG, tilt_range=0.0, translation_range=(0.5, 0.5, 0.0), max_points=10**6
+        cube_sizes=(0.5,),
+        yaw_range=6 * DEG,
+        tilt_range=0.0,
+        translation_range=(0.5, 0.5, 0.0),
+        max_points=10**6,
+        skip_level_surfaces=False,
     )
     result = octree_guess(model, data, truth, config)
     level = result.levels[0]
@@ -305,4 +312,20 @@ def test_a_prebuilt_octree_gives_the_same_search(hall_pair) -> None:
     # a finer octree anchors the cubes differently, which changes the scores but not the answer much
     finer = octree_guess(Octree(model, leaf_size=0.1), data, start, config)
     metres, radians = pose_difference(finer.transform, from_points.transform)
-    assert metres < 0.4 and radians < 1.0 * DEG
+    steps = from_points.levels[-1].steps  # at most one step of the finest level
+    assert metres <= steps[0] + 1e-9 and radians <= max(steps[3:]) + 1e-9
+
+
+def test_level_surfaces_flags_ground_and_ceiling_not_walls() -> None:
+    """The ring-sampled level planes are left out of the score; the walls that fix the heading stay."""
+    rng = np.random.default_rng(4)
+    ground = np.column_stack([rng.uniform(-20, 20, (4000, 2)), rng.normal(-1.8, 0.01, 4000)])
+    ceiling = np.column_stack([rng.uniform(-8, 8, (2000, 2)), rng.normal(2.5, 0.01, 2000)])
+    wall = np.column_stack([rng.uniform(-20, 20, 1500), np.full(1500, 6.0), rng.uniform(-1.8, 2.5, 1500)])
+    tilt = pose_from_xyzrpy(0, 0, 0, 4 * DEG, -3 * DEG, 0)  # a handheld scanner is not level
+    points = transform_points(tilt, np.vstack([ground, ceiling, wall]))
+    flagged = level_surfaces(points, tolerance=0.15, min_share=0.1)
+    assert flagged[:4000].mean() > 0.98 and flagged[4000:6000].mean() > 0.98
+    assert flagged[6000:].mean() < 0.15  # only the wall's strips at floor and ceiling height
+    assert search_pivot(points).tolist() == [0.0, 0.0, 0.0]  # the scanner stands inside its scan
+    assert np.allclose(search_pivot(points + 100.0), (points + 100.0).mean(axis=0))

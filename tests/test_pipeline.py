@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from slam6d.errors import RegistrationError
+from slam6d.errors import DisconnectedGraphError, RegistrationError
 from slam6d.events import Finished, IcpIterated, LoopClosed, RelaxationProgressed, ScanRegistered, ScanStarted
 from slam6d.geometry import UOS, make_pose, pose_difference
 from slam6d.io.frames import read_frames
@@ -104,7 +104,83 @@ def test_cancel_stops_the_run(small_loop) -> None:  # type: ignore[no-untyped-de
 
     with pytest.raises(Cancelled):
         pipeline.run(cancel=cancel)
-    assert not pipeline.done
+    assert pipeline.done
+    assert pipeline.report is not None and pipeline.report.failure is not None
+    assert pipeline.report.failure.error == "Cancelled" and pipeline.report.failure.stage == "registration"
+    assert 0 < pipeline.report.registered_scans < len(pipeline.sequence)
+
+
+def _two_places(sim, count: int = 4, apart: float = 1000.0) -> ScanSequence:  # type: ignore[no-untyped-def]
+    """The first ``count`` scans of ``sim``, then the same scans again ``apart`` metres away: the
+    second group shares nothing with the first, so the map must fall into two components."""
+    first = [Scan(s.points, s.pose.copy(), s.name, has_pose=True) for s in sim.sequence.scans[:count]]
+    moved = make_pose(np.eye(3), [apart, 0.0, 0.0])
+    second = [
+        Scan(s.points, moved @ s.pose, f"far{k}", has_pose=True) for k, s in enumerate(sim.sequence.scans[:count])
+    ]
+    return ScanSequence(first + second)
+
+
+def test_disconnected_graph_relaxes_each_component_and_names_them(small_loop) -> None:  # type: ignore[no-untyped-def]
+    # the global feature guess would (rightly) find that the far copies overlap the first scans
+    pipeline = Pipeline(_two_places(small_loop), PipelineConfig(loops=False, feature_guess=False))
+    with pytest.raises(DisconnectedGraphError) as raised:
+        pipeline.run()
+    assert raised.value.components == [[0, 1, 2, 3], [4, 5, 6, 7]]
+    report = pipeline.report
+    assert report is not None and report.failure is not None
+    assert report.failure.stage == "relaxation" and "disconnected" in report.failure.reason
+    assert report.components == [[0, 1, 2, 3], [4, 5, 6, 7]]
+    assert report.skipped_scans == [4] and report.registered_scans == 7
+    assert not report.scan_summaries[4].registered and "could not be registered" in report.scan_summaries[4].failure
+    assert report.relaxation_iterations > 0 and report.neighbour_pairs >= 6  # both parts were relaxed
+    # each component was relaxed on its own, anchored at its first scan: both agree with the truth
+    truth = small_loop.truth
+    for offset in (0, 4):
+        anchor = pipeline.poses[offset]
+        for k in range(1, 4):
+            relative = np.linalg.inv(anchor) @ pipeline.poses[offset + k]
+            dt, dr = pose_difference(relative, np.linalg.inv(truth[0]) @ truth[k])
+            assert dt < 0.03 and np.degrees(dr) < 0.3, (offset + k, dt, np.degrees(dr))
+
+
+def test_cli_run_writes_the_poses_it_has_when_a_stage_fails(small_loop, tmp_path) -> None:  # type: ignore[no-untyped-def]
+    from typer.testing import CliRunner
+
+    from slam6d.cli import STAGE_FAILED, app
+    from slam6d.io.kitti import write_kitti_bin
+    from slam6d.io.poses import write_kitti_poses
+
+    sequence = _two_places(small_loop)
+    folder = tmp_path / "bins"
+    folder.mkdir()
+    for k, scan in enumerate(sequence):
+        write_kitti_bin(folder / f"{k}.bin", scan.points, None)
+    write_kitti_poses(tmp_path / "odometry.txt", [scan.pose for scan in sequence])
+    out = tmp_path / "out"
+    result = CliRunner().invoke(
+        app,
+        [
+            "run",
+            str(folder),
+            "--poses",
+            str(tmp_path / "odometry.txt"),
+            "--out",
+            str(out),
+            "--no-loops",
+            "--no-feature-guess",
+        ],
+    )
+    assert result.exit_code == STAGE_FAILED, result.output
+    estimate = read_kitti_poses(out / "poses_kitti.txt")
+    assert len(estimate) == 8
+    dt, _ = pose_difference(
+        np.linalg.inv(estimate[0]) @ estimate[3], np.linalg.inv(small_loop.truth[0]) @ small_loop.truth[3]
+    )
+    assert dt < 0.03
+    report = json.loads((out / "report.json").read_text())
+    assert report["failure"]["stage"] == "relaxation"
+    assert report["components"] == [[0, 1, 2, 3], [4, 5, 6, 7]]
 
 
 def test_pairwise_without_odometry_uses_the_octree_guess() -> None:
@@ -113,7 +189,10 @@ def test_pairwise_without_odometry_uses_the_octree_guess() -> None:
     truth = dense.truth
     pipeline = Pipeline(ScanSequence(scans), PipelineConfig(matching="pairwise", loops=False, relaxation="none"))
     report = pipeline.run()
-    assert all(s.octree_guess for s in report.scan_summaries[1:])
+    # no motion to extrapolate for the second scan: the octree search starts it; the others start
+    # from the constant-velocity prediction
+    assert report.scan_summaries[1].octree_guess and report.scan_summaries[1].starts_tried[0] == "octree"
+    assert all(s.starts_tried[0] == "start" for s in report.scan_summaries[2:])
     for k in range(1, 4):
         expected = np.linalg.inv(truth[0]) @ truth[k]
         dt, dr = pose_difference(pipeline.poses[k], expected)

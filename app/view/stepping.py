@@ -4,14 +4,17 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 
-from app.registration import store_run, working_copy
+from app.errors import PartialResultError
+from app.registration import keep_partial_run, store_run, working_copy
 from app.traces import TraceRecorder
 from app.view.panels.host import ViewerHost
 from slam6d.engine_settings import pipeline_config
+from slam6d.errors import Slam6dError
 from slam6d.events import (
     Event,
     Finished,
@@ -20,6 +23,7 @@ from slam6d.events import (
     LoopsDetected,
     RelaxationProgressed,
     ScanRegistered,
+    ScanSkipped,
     ScanStarted,
 )
 from slam6d.geometry import Matrix
@@ -67,12 +71,32 @@ class Stepper:
     def step(self) -> None:
         with self._lock:
             if not self.finished:
-                self._show_all([self.pipeline.step()])
+                self._show_all(self._advance(lambda: [self.pipeline.step()]))
 
     def next_scan(self) -> None:
         with self._lock:
             if not self.finished:
-                self._show_all(self.pipeline.step_scan())
+                self._show_all(self._advance(self.pipeline.step_scan))
+
+    def _advance(self, advance: Callable[[], list[Any]]) -> list[Any]:
+        """The next events; when a stage fails, its poses so far are kept as a revision and the
+        failure, naming that revision, is raised for the view to show."""
+        try:
+            return advance()
+        except Slam6dError as exc:
+            kept = keep_partial_run(
+                self.viewer.workbench,
+                self.viewer.session_id,
+                self.author,
+                self.pipeline,
+                self.recorder,
+                {"stepped": True},
+            )
+            if kept is None:
+                raise
+            self.finished = True
+            self.viewer.controls.step_status.content = kept["kept"]
+            raise PartialResultError(f"{exc} — {kept['kept']}", kept) from exc
 
     def _show_all(self, events: list[Any]) -> None:
         """Draw under the view's lock: a view stopped meanwhile (its server gone) draws nothing."""
@@ -137,6 +161,9 @@ class Stepper:
         elif isinstance(event, ScanRegistered):
             viewer.set_poses(self._pose_list(event.index, event.pose), [event.index])
             status.content = f"scan {event.index} registered (RMS {event.result.rms:.4f} m)"
+        elif isinstance(event, ScanSkipped):
+            viewer.set_poses(self._pose_list(event.index, event.pose), [event.index])
+            status.content = f"{event.reason}; going on from its predicted pose"
         elif isinstance(event, Finished):
             self.finished = True
             self._set_pair(None, [])

@@ -77,6 +77,7 @@ CONF_FORMAT = register_format(
         read=read_conf_scan,
         description="Stanford .conf (bmesh FILE t q) listing PLY scans, metres, y up; pose = [R(q)^T | t]",
         discover=discover_conf,
+        order_fixed_by=lambda path: f"the index {conf.name}" if (conf := _conf_file(path)) else None,
         sequence_poses=conf_poses,
         index_suffixes=(".conf",),
     )

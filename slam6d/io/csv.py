@@ -19,6 +19,7 @@ import numpy as np
 
 from slam6d.errors import FormatError
 from slam6d.geometry import CANONICAL, Matrix
+from slam6d.io.order import sort_scan_files
 from slam6d.io.registry import CloudData, ScanFormat, register_format
 from slam6d.io.source import check_regular_file
 from slam6d.io.text import parse_numeric_rows, read_text_file
@@ -135,11 +136,22 @@ def discover_listed(suffix: str) -> Callable[[Path], list[Path]]:
         entries = find_list_for(directory, suffix)
         if entries is not None:
             return [p for p, _ in entries]
-        return sorted(
+        return sort_scan_files(
             p for p in directory.iterdir() if p.is_file() and p.suffix.lower() == suffix and not is_list_file(p)
         )
 
     return discover
+
+
+def list_file_ordering(suffix: str) -> Callable[[Path], str | None]:
+    """For :attr:`ScanFormat.order_fixed_by`: the list file that orders a folder of ``suffix`` clouds, if any."""
+
+    def fixed_by(directory: Path) -> str | None:
+        if directory.is_file():
+            return f"the list file {directory.name}"
+        return "the list file naming the clouds" if find_list_for(directory, suffix) is not None else None
+
+    return fixed_by
 
 
 def listed_poses(suffix: str) -> Callable[[Path, list[Path]], list[Matrix] | None]:
@@ -165,6 +177,7 @@ CSV_FORMAT = register_format(
         read=read_csv_cloud,
         description="comma-separated cloud with x,y,z[,intensity] header (libpointmatcher); list file = order+poses",
         discover=discover_listed(".csv"),
+        order_fixed_by=list_file_ordering(".csv"),
         sequence_poses=listed_poses(".csv"),
     )
 )

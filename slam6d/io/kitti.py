@@ -18,6 +18,7 @@ import numpy as np
 
 from slam6d.errors import FormatError
 from slam6d.geometry import CANONICAL, Matrix
+from slam6d.io.order import sort_scan_files
 from slam6d.io.poses import read_kitti_poses
 from slam6d.io.registry import CloudData, ScanFormat, register_format
 from slam6d.io.source import read_file_bytes
@@ -50,14 +51,14 @@ def write_kitti_bin(path: Path, points: np.ndarray, intensity: np.ndarray | None
 
 
 def _bins(directory: Path) -> list[Path]:
-    return sorted(p for p in directory.iterdir() if p.is_file() and p.suffix.lower() == ".bin")
+    return sort_scan_files(p for p in directory.iterdir() if p.is_file() and p.suffix.lower() == ".bin")
 
 
 def discover_kitti(directory: Path) -> list[Path]:
     files = _bins(directory)
     if files:
         return files
-    subfolders = [d for d in sorted(directory.iterdir()) if d.is_dir() and _bins(d)]
+    subfolders = [d for d in sort_scan_files(directory.iterdir()) if d.is_dir() and _bins(d)]
     return _bins(subfolders[0]) if len(subfolders) == 1 else []
 
 

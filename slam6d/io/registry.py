@@ -18,6 +18,7 @@ from numpy.typing import NDArray
 
 from slam6d.errors import EmptyScanError, FormatError, InvalidValueError
 from slam6d.geometry import FrameConvention, Matrix, check_rigid
+from slam6d.io.order import DEFAULT_ORDER, check_order, sort_scan_files
 from slam6d.scan import Scan, ScanSequence
 
 
@@ -37,13 +38,17 @@ class ScanFormat:
     convention: FrameConvention
     read: Callable[[Path], CloudData]
     description: str = ""
-    # Lists the scan files of a directory in acquisition order; default: every file with a suffix, sorted.
+    # Lists the scan files of a directory in acquisition order; default: every file with a suffix, in
+    # natural order (slam6d.io.order).
     discover: Callable[[Path], list[Path]] | None = None
     # Poses for a whole directory (e.g. a KITTI poses file beside the scans), native frame, or None.
     sequence_poses: Callable[[Path, list[Path]], list[Matrix] | None] | None = None
     # Suffixes of files that list a sequence (e.g. Stanford ``.conf``): read_sequence on such a file
     # passes it to discover/sequence_poses in place of a directory.
     index_suffixes: tuple[str, ...] = ()
+    # What fixes the order of a directory's scans when it is not a plain folder listing (an index file,
+    # a numbering scheme), or None; ``--order`` other than natural is refused then (see slam6d.io.order).
+    order_fixed_by: Callable[[Path], str | None] | None = None
 
 
 class NonFinitePointsWarning(UserWarning):
@@ -167,13 +172,24 @@ def rigid_pose(path: Path, pose: Matrix, scan: str | None = None) -> Matrix:
         raise FormatError(path, str(exc)) from None
 
 
-def list_scan_files(path: Path, fmt: ScanFormat) -> list[Path]:
+def list_scan_files(path: Path, fmt: ScanFormat, order: str = DEFAULT_ORDER) -> list[Path]:
+    """The scan files of a directory (or index file) in acquisition order.
+
+    Folder listings come in natural order (``2.pcd`` before ``10.pcd``); ``order`` = ``name`` or
+    ``mtime`` re-sorts them. A format whose order an index fixes refuses anything but the default.
+    """
+    check_order(order)
     if fmt.discover is not None:
         files = fmt.discover(path)
     else:
-        files = sorted(p for p in path.iterdir() if p.is_file() and p.suffix.lower() in fmt.suffixes)
+        files = sort_scan_files(p for p in path.iterdir() if p.is_file() and p.suffix.lower() in fmt.suffixes)
     if not files:
         raise FormatError(path, f"no '{fmt.name}' scans found in this directory")
+    if order != DEFAULT_ORDER:
+        fixed_by = fmt.order_fixed_by(path) if fmt.order_fixed_by is not None else None
+        if fixed_by is not None:
+            raise FormatError(path, f"the scan order is fixed by {fixed_by}; --order {order} does not apply")
+        files = sort_scan_files(files, order)
     return files
 
 
@@ -186,8 +202,11 @@ def read_sequence(
     poses_file: Path | None = None,
     convention: FrameConvention | None = None,
     progress: Callable[[int, int], None] | None = None,
+    order: str = DEFAULT_ORDER,
 ) -> ScanSequence:
     """Read a directory of scans (or a single file, or a sequence index file) in acquisition order.
+
+    ``order`` is how a folder's files are sorted (:mod:`slam6d.io.order`: natural by default).
 
     ``poses_file`` (KITTI 3x4, TUM or 4x4 lines, native frame) overrides any poses the scans carry, which is
     how odometry is supplied for formats that have none.
@@ -197,7 +216,7 @@ def read_sequence(
         raise FormatError(path, "no such file or directory")
     fmt = resolve_format(path, format_name)
     listing = path.is_dir() or path.suffix.lower() in fmt.index_suffixes
-    all_files = list_scan_files(path, fmt) if listing else [path]
+    all_files = list_scan_files(path, fmt, order) if listing else [path]
     stop = None if last is None else last + 1
     files = all_files[first:stop]
     conv = convention or fmt.convention

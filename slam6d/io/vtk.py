@@ -16,7 +16,7 @@ from numpy.typing import NDArray
 
 from slam6d.errors import FormatError
 from slam6d.geometry import CANONICAL
-from slam6d.io.csv import discover_listed, listed_poses
+from slam6d.io.csv import discover_listed, list_file_ordering, listed_poses
 from slam6d.io.registry import CloudData, ScanFormat, register_format
 from slam6d.io.source import read_file_bytes
 
@@ -129,6 +129,7 @@ VTK_FORMAT = register_format(
         read=read_vtk,
         description="legacy VTK (ASCII or BINARY) POINTS, metres; cloudList.csv gives order and gT poses",
         discover=discover_listed(".vtk"),
+        order_fixed_by=list_file_ordering(".vtk"),
         sequence_poses=listed_poses(".vtk"),
     )
 )

@@ -1,0 +1,1 @@
+"""Benchmark scripts (run as files); a package so one script can reuse another's peers."""
