@@ -99,6 +99,7 @@ class PipelineReport:
     neighbour_pairs: int
     max_range: float
     settings: dict[str, Any]
+    peak_memory_bytes: int = 0  # the process's peak resident memory when the run finished
     scan_summaries: list[ScanSummary] = field(default_factory=list)
 
 
