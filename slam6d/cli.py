@@ -191,18 +191,65 @@ def render(
 def simulate(
     out: Annotated[Path, typer.Argument(help="Directory to write the uos session into.")],
     seed: Annotated[int, typer.Option(help="Random seed: the same seed writes identical files.")] = 0,
-    scans: Annotated[int, typer.Option(help="Number of scans along the loop.")] = 20,
-    points_per_scan: Annotated[int, typer.Option(help="Laser shots per scan (181 per scan line).")] = 20_000,
-    pattern: Annotated[str, typer.Option(help="rotating (360°) or tilting (Kurt3D's 180° front view).")] = "rotating",
+    scans: Annotated[int, typer.Option(help="Number of scans.")] = 20,
+    world: Annotated[
+        str,
+        typer.Option(
+            help="loop (a robot's ~100 m loop round a block, the seed's world), indoor (hall, corridor, rooms "
+            "with doors), outdoor (streets, 3 x 2 blocks, car scale) or campus (6 x 4 blocks, ~2.9 km of loops, "
+            "a parking deck with a ramp)."
+        ),
+    ] = "loop",
+    sensor: Annotated[
+        str | None,
+        typer.Option(
+            help="rotating-sick (a 181-reading fan turned 360°), tilting-sick (Kurt3D's 180° front view), vlp16, "
+            "hdl32, hdl64 or os1-64. Default: the world's (loop rotating-sick, indoor vlp16, outdoor hdl32, "
+            "campus vlp16)."
+        ),
+    ] = None,
+    motion: Annotated[
+        str | None,
+        typer.Option(
+            help="robot (stop-and-go, stops spread over one lap), handheld (0.3-0.7 m steps, turns up to 45°, "
+            "wobble) or car (1-3 m steps, smooth). Default: the world's (loop robot, indoor handheld, "
+            "outdoor and campus car)."
+        ),
+    ] = None,
+    points_per_scan: Annotated[
+        int | None,
+        typer.Option(
+            help="Laser shots per scan (SICK: 181 per line; multi-beam: beams per column, columns = shots / beams). "
+            "Default: the sensor's own (SICK 20000, VLP-16 28800, HDL-32E 69504, HDL-64E 133312, OS1-64 65536)."
+        ),
+    ] = None,
+    odometry: Annotated[
+        bool,
+        typer.Option(
+            help="Write the drifting odometry (.pose files, odometry_kitti.txt); without it scans have no pose."
+        ),
+    ] = True,
+    pattern: Annotated[
+        str | None, typer.Option(hidden=True, help="Former name of --sensor: rotating or tilting.")
+    ] = None,
     decimals: Annotated[int, typer.Option(help="Decimals of the centimetre coordinates in the files.")] = 2,
     overwrite: Annotated[bool, typer.Option(help="Replace scans already in OUT.")] = False,
 ) -> None:
-    """Write a simulated outdoor robot session (uos) with ground truth and drifting odometry."""
+    """Write a simulated session (uos) with ground truth and, unless --no-odometry, drifting odometry."""
     from slam6d.metrics import absolute_trajectory_error
     from slam6d.simulate import SimulationConfig, simulate_session
 
+    if pattern is not None and sensor is not None:
+        raise typer.BadParameter("give --sensor or its former name --pattern, not both")
     config = SimulationConfig(
-        seed=seed, scans=scans, points_per_scan=points_per_scan, pattern=pattern, decimals=decimals
+        seed=seed,
+        scans=scans,
+        points_per_scan=points_per_scan,
+        sensor=sensor if pattern is None else pattern,
+        world=world,
+        motion=motion,
+        odometry=odometry,
+        decimals=decimals,
     )
     try:
         config.validate()
@@ -210,8 +257,11 @@ def simulate(
         raise typer.BadParameter(str(exc)) from None
     with progress_bar("simulating") as update:
         session = simulate_session(out, config, progress=update, overwrite=overwrite)
-    drift = absolute_trajectory_error(session.odometry, session.ground_truth)
     typer.echo(f"{len(session.scan_paths)} scans, {sum(session.point_counts)} points written to {session.directory}")
+    if session.odometry_file is None:
+        typer.echo(f"ground truth: {session.ground_truth_file.name} (KITTI, cm); no odometry written")
+        return
+    drift = absolute_trajectory_error(session.odometry, session.ground_truth)
     typer.echo(f"ground truth: {session.ground_truth_file.name}, odometry: {session.odometry_file.name} (KITTI, cm)")
     typer.echo(f"odometry drift vs ground truth: ATE rmse {drift.rmse:.3f} m, max {drift.max:.3f} m")
 

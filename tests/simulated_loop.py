@@ -1,4 +1,4 @@
-"""An in-memory simulated loop (the project's own simulator, no files) for fast pipeline tests."""
+"""An in-memory simulated session (the project's own simulator, no files) for fast pipeline tests."""
 
 from __future__ import annotations
 
@@ -8,38 +8,37 @@ import numpy as np
 
 from slam6d.geometry import Matrix
 from slam6d.scan import Scan, ScanSequence
-from slam6d.simulate import (
-    SimulationConfig,
-    build_scene,
-    drifting_odometry,
-    ground_truth_poses,
-    scan_pattern,
-    simulate_scan,
-)
+from slam6d.simulate import SimulationConfig, simulated_scans
 
 
 @dataclass
 class SimulatedLoop:
-    sequence: ScanSequence  # scans carry the drifting odometry as their poses
+    sequence: ScanSequence  # scans carry the drifting odometry as their poses (has_pose False without odometry)
     truth: list[Matrix]
     odometry: list[Matrix]
 
 
 def simulated_loop(
-    scans: int = 12, points: int = 8000, seed: int = 3, first: int | None = None, **overrides: float
+    scans: int = 12,
+    points: int | None = 8000,
+    seed: int = 3,
+    first: int | None = None,
+    **overrides: float | str | bool | None,
 ) -> SimulatedLoop:
-    """``first`` keeps only the first scans of the loop (the path still has ``scans`` stops)."""
+    """``first`` keeps only the first scans of the session (the route still has ``scans`` stops).
+
+    ``overrides`` are :class:`SimulationConfig` fields, e.g. ``sensor="vlp16", world="indoor",
+    motion="handheld", odometry=False``; ``points=None`` takes the sensor's own shot count.
+    Without odometry the scans sit at the identity with ``has_pose`` False, as a reader leaves
+    scans that have no pose file.
+    """
     config = SimulationConfig(seed=seed, scans=scans, points_per_scan=points, **overrides)  # type: ignore[arg-type]
-    rng = np.random.default_rng(config.seed)
-    scene = build_scene(config, rng)
-    truth = ground_truth_poses(config, scene)
-    odometry = drifting_odometry(config, truth, rng)
-    truth, odometry = truth[:first], odometry[:first]
-    directions = scan_pattern(config)
-    clouds = [simulate_scan(config, scene, pose, directions, rng) for pose in truth]
+    simulation = simulated_scans(config)
+    truth, odometry = simulation.truth[:first], simulation.odometry[:first]
+    clouds = [cloud for _, cloud in zip(truth, simulation.scans(), strict=False)]  # cast only the scans kept
     sequence = ScanSequence(
         [
-            Scan(c, o.copy(), name=f"scan{k:03d}", has_pose=True)
+            Scan(c, o.copy() if config.odometry else np.eye(4), name=f"scan{k:03d}", has_pose=config.odometry)
             for k, (c, o) in enumerate(zip(clouds, odometry, strict=True))
         ]
     )

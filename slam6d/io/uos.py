@@ -19,7 +19,7 @@ from slam6d.io.registry import CloudData, ScanFormat, register_format
 from slam6d.io.text import parse_numeric_bytes, parse_numeric_rows, read_text_file
 
 NO_ECHO_RANGE_CM = 3276.0
-_SCAN_NAME = re.compile(r"^scan(\d{3})\.3d$")
+_SCAN_NAME = re.compile(r"^scan(\d{3,})\.3d$")  # 3DTK writes %03d: scan1000.3d follows scan999.3d
 
 
 def read_pose_file(path: Path) -> Matrix:
