@@ -299,3 +299,45 @@ def test_kurt3d_frame_reads_as_a_scene(shared_data: Path, artifacts_dir: Path) -
     assert covered > 0.6
     grey = image[renderer.index >= 0].mean(axis=1)
     assert grey.std() > 20  # shading varies: not a flat silhouette
+
+
+def test_overlapped_encoding_writes_every_frame_in_order(tmp_path: Path) -> None:
+    """Frames go to the encoder on a writer thread, from copies: the caller may reuse its buffer at once."""
+    import imageio_ffmpeg
+
+    from slam6d.video import FrameSink
+
+    sink = FrameSink(tmp_path / "grey.mp4", 64, 48, fps=10)
+    image = np.empty((48, 64, 3), dtype=np.uint8)
+    levels = [(37 * k) % 250 for k in range(25)]
+    for level in levels:
+        image[:] = level  # the same buffer every frame, as the renderer does
+        sink.write(image)
+    sink.commit()
+    reader = imageio_ffmpeg.read_frames(str(tmp_path / "grey.mp4"))
+    meta = next(reader)
+    read = [float(np.frombuffer(frame, dtype=np.uint8).mean()) for frame in reader]
+    assert tuple(meta["size"]) == (64, 48)
+    np.testing.assert_allclose(read, levels, atol=3)  # H.264 of flat grey: within a few levels
+
+
+def test_encoder_failure_is_raised_and_leaves_nothing(tmp_path: Path) -> None:
+    from slam6d.video import FrameSink
+
+    class Broken:
+        def send(self, frame: object) -> None:
+            raise BrokenPipeError("ffmpeg exited")
+
+        def close(self) -> None:
+            pass
+
+    sink = FrameSink(tmp_path / "fly.mp4", 64, 48, fps=10)
+    real = sink._writer
+    sink._writer = Broken()
+    with pytest.raises(Slam6dError, match="encoder failed: ffmpeg exited"):
+        for _ in range(50):
+            sink.write(np.zeros((48, 64, 3), dtype=np.uint8))
+        sink.commit()
+    sink._writer = real
+    sink.discard()
+    assert list(tmp_path.iterdir()) == []
