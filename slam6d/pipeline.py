@@ -209,7 +209,7 @@ class Pipeline:
         if scheduler is not None:
             voxels = [config.voxel_size] * len(sequence)
             if store is not None:
-                folders = [str(store.directory)] * len(sequence)
+                folders = [str(store.directory.resolve())] * len(sequence)  # workers may run elsewhere
                 reduced = scheduler.map(reduce_stored_scan, folders, range(len(sequence)), voxels)
             else:
                 reduced = scheduler.map(reduce_scan, [scan.points for scan in sequence], voxels)
