@@ -27,7 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from slam6d.errors import Slam6dError
-from slam6d.geometry import Matrix
+from slam6d.geometry import CANONICAL, CONVENTIONS, FrameConvention, Matrix
 from slam6d.io.registry import ReadOptions, list_scan_files, read_sequence, resolve_format
 from slam6d.scan import Scan, ScanSequence
 
@@ -72,6 +72,7 @@ class ScanStore:
             self.poses: list[Matrix] = [np.array(p, dtype=np.float64).reshape(4, 4) for p in index["poses"]]
             self.has_pose: list[bool] = [bool(h) for h in index["has_pose"]]
             self.names: list[str] = [str(n) for n in index["names"]]
+            self.convention = CONVENTIONS[index.get("convention", CANONICAL.name)]
         except (OSError, ValueError, KeyError, TypeError) as exc:
             raise ScanStoreError(f"{index_path}: not a readable scan store index ({exc})") from exc
         self.offsets = np.concatenate([[0], np.cumsum(self.counts)])
@@ -89,8 +90,9 @@ class ScanStore:
         return len(self.counts)
 
     @staticmethod
-    def create(directory: Path | str, scans: Iterable[Scan]) -> Path:
-        """Write ``scans`` (consumed one at a time, so an iterator holds one scan at once) as a store."""
+    def create(directory: Path | str, scans: Iterable[Scan], convention: FrameConvention = CANONICAL) -> Path:
+        """Write ``scans`` (consumed one at a time, so an iterator holds one scan at once) as a store;
+        ``convention`` is the frame of the source they were read from (poses written back use it)."""
         out = Path(directory)
         out.mkdir(parents=True, exist_ok=True)
         counts, poses, has_pose, names = [], [], [], []
@@ -101,7 +103,13 @@ class ScanStore:
                 poses.append(np.asarray(scan.pose, dtype=np.float64).ravel().tolist())
                 has_pose.append(bool(scan.has_pose))
                 names.append(scan.name)
-        index = {"counts": counts, "poses": poses, "has_pose": has_pose, "names": names}
+        index = {
+            "counts": counts,
+            "poses": poses,
+            "has_pose": has_pose,
+            "names": names,
+            "convention": convention.name,
+        }
         (out / INDEX_FILE).write_text(json.dumps(index))
         return out
 
@@ -139,6 +147,11 @@ class ScanStore:
         self.loads += 1
         return points
 
+    @staticmethod
+    def holds(directory: Path | str) -> bool:
+        """Whether ``directory`` is a store (e.g. the ``scan_store`` folder ``slam6d run --memory-budget`` writes)."""
+        return (Path(directory) / INDEX_FILE).is_file() and (Path(directory) / POINTS_FILE).is_file()
+
     def scan(self, k: int, with_points: bool = True) -> Scan:
         """Scan k with its pose and name; without points (an empty cloud) when only those are needed."""
         points = self.points(k) if with_points else np.empty((0, 3))
@@ -151,6 +164,7 @@ def store_sequence(
     count: int,
     chunk: int = 32,
     progress: Callable[[int, int], None] | None = None,
+    convention: FrameConvention = CANONICAL,
 ) -> Path:
     """Fill a store at ``directory`` with ``count`` scans, ``read_chunk(first, last)`` giving scans
     first..last (inclusive) at a time: at most ``chunk`` full clouds are in memory while reading."""
@@ -162,7 +176,7 @@ def store_sequence(
             if progress is not None:
                 progress(last + 1, count)
 
-    return ScanStore.create(directory, scans())
+    return ScanStore.create(directory, scans(), convention)
 
 
 def store_source(
@@ -197,7 +211,7 @@ def store_source(
         read[:] = [sequence]
         return sequence.scans
 
-    store_sequence(directory, read_chunk, count, progress=progress)
+    store_sequence(directory, read_chunk, count, progress=progress, convention=fmt.convention)
     store = ScanStore(directory, budget)
     template = read[0]
     scans = [store.scan(k, with_points=False) for k in range(len(store))]
