@@ -11,7 +11,9 @@ Cases (each simulated once into ``--work`` by ``slam6d simulate`` and reused aft
 Every run is the command line a user starts (start-up, reading the files, writing the results),
 its figures read from the ``report.json`` it writes (``wall_seconds``, ``stage_seconds``,
 ``neighbour_pairs``, ``peak_memory_bytes``) and its ATE against the simulator's ground truth. The
-growth exponent is the slope of log(wall) over log(scans) per case (1 = linear). With
+growth exponent is the slope of log(time) over log(scans) per case (1 = linear), for wall and for
+CPU time (user + system of the run and its workers, which the machine's other work inflates far
+less than wall time). With
 ``--scheduler local:2`` each run is repeated on a local Dask cluster and the largest distance
 between its scan positions and the serial run's is printed. Timings on a shared machine swing
 with its load: the load average is printed beside every run.
@@ -24,6 +26,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import resource
 import subprocess
 import sys
 from dataclasses import dataclass
@@ -46,6 +49,7 @@ class Run:
     case: str
     scans: int
     wall: float
+    cpu: float  # user + system seconds of the run (its worker processes included): barely inflated by load
     stages: dict[str, float]
     pairs: int
     peak_gb: float
@@ -69,7 +73,10 @@ def session(work: Path, case: str, scans: int) -> Path:
 
 def run(directory: Path, case: str, scans: int, extra: list[str]) -> Run:
     out = directory.parent / f"{directory.name}_out{'_' + '_'.join(extra).replace('/', '') if extra else ''}"
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
     done = cli("run", str(directory), "--format", "uos", "--out", str(out), *extra)
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
     if done.returncode != 0:
         raise SystemExit(f"slam6d run failed on {directory}:\n{done.stdout}\n{done.stderr}")
     report = json.loads((out / "report.json").read_text())
@@ -79,6 +86,7 @@ def run(directory: Path, case: str, scans: int, extra: list[str]) -> Run:
         case,
         scans,
         float(report["wall_seconds"]),
+        cpu,
         {k: float(v) for k, v in report["stage_seconds"].items() if v >= 0.01},
         int(report["neighbour_pairs"]),
         report["peak_memory_bytes"] / 1e9,
@@ -88,11 +96,9 @@ def run(directory: Path, case: str, scans: int, extra: list[str]) -> Run:
     )
 
 
-def exponent(runs: list[Run]) -> float:
-    """Slope of log(wall) against log(scans): 1 is linear, 2 quadratic."""
-    if len(runs) < 2:
-        return float("nan")
-    return float(np.polyfit(np.log([r.scans for r in runs]), np.log([r.wall for r in runs]), 1)[0])
+def exponent(scans: list[int], seconds: list[float]) -> float:
+    """Slope of log(seconds) against log(scans): 1 is linear, 2 quadratic."""
+    return float(np.polyfit(np.log(scans), np.log(seconds), 1)[0])
 
 
 def main() -> None:
@@ -105,8 +111,8 @@ def main() -> None:
     args = parser.parse_args()
     extra = ["--memory-budget", args.memory_budget] if args.memory_budget else []
     print(f"slam6d run, {os.cpu_count()} cores; load average before: {os.getloadavg()[0]:.1f}")
-    print("| case | scans | wall | stages | neighbour pairs | peak memory | ATE | load |")
-    print("|---|---|---|---|---|---|---|---|")
+    print("| case | scans | wall | CPU | stages | neighbour pairs | peak memory | ATE | load |")
+    print("|---|---|---|---|---|---|---|---|---|")
     for case, counts in (("loop", args.loop), ("campus", args.campus)):
         runs = []
         for scans in counts:
@@ -115,7 +121,7 @@ def main() -> None:
             runs.append(r)
             stages = ", ".join(f"{k} {v:.1f}" for k, v in r.stages.items())
             print(
-                f"| {case} | {scans} | {r.wall:.1f} s | {stages} | {r.pairs:,} | {r.peak_gb:.2f} GB"
+                f"| {case} | {scans} | {r.wall:.1f} s | {r.cpu:.1f} s | {stages} | {r.pairs:,} | {r.peak_gb:.2f} GB"
                 f" | {r.ate_cm:.2f} cm | {r.load:.1f} |",
                 flush=True,
             )
@@ -123,15 +129,18 @@ def main() -> None:
                 d = run(directory, case, scans, [*extra, "--scheduler", args.scheduler])
                 apart = float(np.linalg.norm(d.poses - r.poses, axis=1).max())
                 print(
-                    f"|   {args.scheduler} | {scans} | {d.wall:.1f} s | | {d.pairs:,} | {d.peak_gb:.2f} GB"
+                    f"|   {args.scheduler} | {scans} | {d.wall:.1f} s | {d.cpu:.1f} s | | {d.pairs:,} | {d.peak_gb:.2f} GB"
                     f" | {d.ate_cm:.2f} cm (positions {100 * apart:.4f} cm from serial) | {d.load:.1f} |",
                     flush=True,
                 )
         if len(runs) >= 2:
             first, last = runs[0], runs[-1]
+            scans = [r.scans for r in runs]
             print(
-                f"{case}: wall grows as scans^{exponent(runs):.2f}; t({last.scans})/t({first.scans}) ="
-                f" {last.wall / first.wall:.1f} for {last.scans / first.scans:.0f}x the scans"
+                f"{case}: wall grows as scans^{exponent(scans, [r.wall for r in runs]):.2f}, CPU as"
+                f" scans^{exponent(scans, [r.cpu for r in runs]):.2f}; t({last.scans})/t({first.scans}) ="
+                f" {last.wall / first.wall:.1f} wall, {last.cpu / first.cpu:.1f} CPU for"
+                f" {last.scans / first.scans:.0f}x the scans"
             )
 
 
