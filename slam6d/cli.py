@@ -354,6 +354,20 @@ def run(
     loops: Annotated[bool, typer.Option(help="Detect loops.")] = True,
     loop_closing: Annotated[bool, typer.Option(help="Close detected loops by error diffusion.")] = True,
     relaxation: Annotated[str, typer.Option(help="Global relaxation: lum, graph, simultaneous or none.")] = "lum",
+    memory_budget: Annotated[
+        str | None,
+        typer.Option(
+            help="Keep the scans on disk (OUT/scan_store, float32) and at most this much of them in memory"
+            " (e.g. 2GB); the stages keep only the reduced copies."
+        ),
+    ] = None,
+    scheduler: Annotated[
+        str | None,
+        typer.Option(
+            help="Run the per-scan work (reduction, LUM's blocks) on a Dask cluster: local:N starts N worker"
+            " processes here, tcp://HOST:PORT joins a running scheduler."
+        ),
+    ] = None,
 ) -> None:
     """Register a whole sequence: sequential ICP, loop closing, global relaxation; write the trajectory."""
     import time
@@ -383,7 +397,16 @@ def run(
             }
         )
 
+    budget = None
+    if memory_budget is not None:
+        from slam6d.scan_store import parse_bytes
+
+        try:
+            budget = parse_bytes(memory_budget)
+        except ValueError as exc:
+            raise typer.BadParameter(str(exc), param_hint="--memory-budget") from None
     began = time.perf_counter()
+    store = None
     if source.exists():
         resolve_format(source, fmt)  # loads the format modules here, so the thread below never waits on one
     # The engine (scipy, numba's compiler registries: ~0.4 s of imports) loads and checks the options on
@@ -400,16 +423,24 @@ def run(
                     if configured.done() and configured.exception() is not None:
                         raise _BadOptions
 
-                sequence = read_sequence(
-                    source,
-                    fmt,
-                    ReadOptions(min_range, max_range),
-                    first,
-                    last,
-                    poses,
-                    progress=read_progress,
-                    order=order,
-                )
+                if budget is None:
+                    sequence = read_sequence(
+                        source,
+                        fmt,
+                        ReadOptions(min_range, max_range),
+                        first,
+                        last,
+                        poses,
+                        progress=read_progress,
+                        order=order,
+                    )
+                else:
+                    from slam6d.scan_store import store_source
+
+                    options = ReadOptions(min_range, max_range)
+                    sequence, store = store_source(
+                        out / "scan_store", source, fmt, options, budget, first, last, poses, read_progress, order
+                    )
         except _BadOptions:
             pass
         read_seconds = time.perf_counter() - began
@@ -419,8 +450,11 @@ def run(
             raise typer.BadParameter(str(exc)) from None
     from slam6d.pipeline import Pipeline, write_results
     from slam6d.posegraph import describe_components
+    from slam6d.scheduler import open_scheduler
 
-    pipeline = Pipeline(sequence, config)
+    workers = open_scheduler(scheduler)
+    pipeline = Pipeline(sequence, config, store=store, scheduler=None if scheduler is None else workers)
+    extra: dict[str, Any] = {"read_seconds": read_seconds}
     try:
         with progress_bar("registering") as update:
             report = pipeline.run(progress=lambda _stage, done, total: update(done, total))
@@ -428,9 +462,7 @@ def run(
         if pipeline.report is None or pipeline.report.failure is None:
             raise
         # the stages before the failed one are kept: their poses and a report saying what failed
-        paths = write_results(
-            pipeline, out, {"read_seconds": read_seconds, "wall_seconds": time.perf_counter() - began}
-        )
+        paths = write_results(pipeline, out, extra | {"wall_seconds": time.perf_counter() - began})
         failure = pipeline.report.failure
         err.print(f"[red]error:[/red] the {failure.stage} stage failed: {exc}")
         if pipeline.report.components:
@@ -442,7 +474,12 @@ def run(
             f"{paths['poses']} and the failure to {paths['report']}"
         )
         raise typer.Exit(STAGE_FAILED) from None
-    paths = write_results(pipeline, out, {"read_seconds": read_seconds, "wall_seconds": time.perf_counter() - began})
+    finally:
+        workers.close()
+    extra["wall_seconds"] = time.perf_counter() - began
+    if store is not None:
+        extra["scan_store"] = {"budget_bytes": store.budget, "peak_bytes": store.peak_bytes, "loads": store.loads}
+    paths = write_results(pipeline, out, extra)
     closed = ", ".join(f"{i}-{j}" for i, j in report.loops_closed) or "none"
     typer.echo(f"{len(sequence)} scans registered; loops closed: {closed}")
     if report.residual_before is not None and report.residual_after is not None:
@@ -452,6 +489,7 @@ def run(
         )
     stages = ", ".join(f"{k} {v:.2f}s" for k, v in report.stage_seconds.items())
     typer.echo(f"times: reading {read_seconds:.2f}s, {stages}; total {time.perf_counter() - began:.2f}s")
+    typer.echo(f"peak memory {report.peak_memory_bytes / 1e9:.2f} GB")
     typer.echo(f"wrote {paths['poses']}, {paths['report']} and {len(sequence)} .frames files")
 
 

@@ -127,6 +127,7 @@ class PipelineReport:
     neighbour_pairs: int
     max_range: float
     settings: dict[str, Any]
+    peak_memory_bytes: int = 0  # the process's peak resident memory when the run finished
     scan_summaries: list[ScanSummary] = field(default_factory=list)
     registered_scans: int = 0  # scans placed by sequential registration (all of them unless it failed)
     skipped_scans: list[int] = field(default_factory=list)  # scans no start could register (see ScanSkipped)

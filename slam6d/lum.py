@@ -23,6 +23,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING, Any
 
 import numba
 import numpy as np
@@ -32,6 +33,7 @@ from slam6d.block_system import BlockSystem
 from slam6d.errors import RelaxationError
 from slam6d.geometry import Matrix, invert, make_pose, so3_exp, transform_points
 from slam6d.icp import correspondences, icp
+from slam6d.nn import build_index
 from slam6d.posegraph import PoseEdge, point_pair_information
 from slam6d.relax import (
     FloatArray,
@@ -51,6 +53,9 @@ from slam6d.relax import (
     rms,
     set_up,
 )
+
+if TYPE_CHECKING:
+    from slam6d.scheduler import Scheduler
 
 __all__ = ["lum_relaxation", "match_edge", "pair_information"]
 
@@ -185,6 +190,50 @@ def _batches(
 
 
 @dataclass
+class _SharedBatch:
+    """What a worker needs of one scan's share of the rounds, sent once per relaxation
+    (:meth:`slam6d.scheduler.Scheduler.share`): scan i's plane sample with every normal estimated,
+    and its batch's points. Rounds then send only the relative poses."""
+
+    sample: FloatArray  # scan i's plane sample, own frame
+    normals: FloatArray
+    usable: NDArray[np.bool_]
+    points: FloatArray
+    source: NDArray[np.int64]
+    pairs: int
+    backend: str
+
+
+def _shared_batch(models: ScanModels, batch: _ScanBatch) -> _SharedBatch:
+    sample, normals, usable = models.plane_model(batch.i).plane_normals()
+    backend = models.plane_model(batch.i).backend
+    return _SharedBatch(sample, normals, usable, batch.points, batch.source, len(batch.others), backend)
+
+
+def _remote_scan_system(
+    shared: _SharedBatch, relative: FloatArray, robust_scale: float, max_distance: float
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """:func:`_scan_system` on a worker: the same query and blocks from plain arrays (a one-thread
+    kd-tree built here; every normal was estimated before sending, so none is estimated here)."""
+    q = place(shared.points, shared.source, relative)
+    _, idx = build_index(shared.sample, shared.backend, threads=1).nearest(q, max_distance)
+    found = np.flatnonzero(idx >= 0)
+    found = found[shared.usable[idx[found]]]
+    partner = idx[found]
+    return _pair_blocks(
+        q,
+        shared.points,
+        found,
+        shared.sample[partner],
+        shared.normals[partner],
+        relative,
+        shared.source,
+        shared.pairs,
+        float(robust_scale),
+    )
+
+
+@dataclass
 class _ScanSystem:
     """Normal-equation blocks of scan i's pairs from one round's query (see :func:`_scan_system`)."""
 
@@ -256,6 +305,8 @@ def _joint_step(
     fixed: set[int],
     config: RelaxationConfig,
     robust_scale: float,
+    scheduler: Scheduler | None = None,
+    shared: Sequence[Any] = (),
 ) -> _Round:
     """One Gauss-Newton step of all scans at once over the current closest-point pairs (LUM's round).
 
@@ -265,7 +316,18 @@ def _joint_step(
     seeing one flat wall) from running away.
     """
     count = len(current)
-    systems = [_scan_system(models, current, batch, robust_scale) for batch in batches]
+    if scheduler is None:
+        systems = [_scan_system(models, current, batch, robust_scale) for batch in batches]
+    else:
+        relatives = [relative_poses(current, b.i, b.others) for b in batches]
+        parts = scheduler.map(
+            _remote_scan_system,
+            shared,
+            relatives,
+            [robust_scale] * len(batches),
+            [models.config.max_distance] * len(batches),
+        )
+        systems = [_ScanSystem(*part) for part in parts]
     ei = np.concatenate([np.full(len(b.others), b.i) for b in batches])
     ej = np.concatenate([b.others for b in batches])
     weight = np.concatenate([b.weights for b in batches])
@@ -323,8 +385,13 @@ def lum_relaxation(
     progress: Progress | None = None,
     cancel: Callable[[], bool] | None = None,
     links: Iterable[tuple[int, int]] = (),
+    scheduler: Scheduler | None = None,
 ) -> RelaxationResult:
     """LUM: all scans solved at once from the closest-point pairs of all neighbour pairs (module docstring).
+
+    With a ``scheduler`` (:mod:`slam6d.scheduler`) each round's per-scan blocks are computed by its
+    workers: every scan's plane sample (all normals estimated first) and batch are sent once, each
+    round only the relative poses; the blocks are those this process would compute.
 
     The residuals reported come from the rounds' own queries (RMS point-to-plane distance of the
     sampled data points paired within the ICP max distance): before is the first
@@ -340,6 +407,7 @@ def lum_relaxation(
     graph_pairs = _strongest(pairs, len(models), config.max_neighbours)
     check_graph(models, graph_pairs, fixed_set, chosen)
     batches = _batches(models, graph_pairs, _edge_budget(models, graph_pairs, config))
+    shared = scheduler.share([_shared_batch(models, b) for b in batches]) if scheduler is not None else []
     held = fixed_set | (set(range(len(models))) - set(chosen))
     first: _Round | None = None
     last: _Round | None = None
@@ -353,7 +421,7 @@ def lum_relaxation(
         scale = config.robust_scale
         if scale > 0:
             scale = max(scale, config.first_scale * 0.5 ** (rounds - 1) * models.config.max_distance)
-        last = _joint_step(models, current, batches, held, config, scale)
+        last = _joint_step(models, current, batches, held, config, scale, scheduler, shared)
         first = first or last
         moved = []
         largest = 0.0

@@ -70,6 +70,8 @@ from slam6d.pair import MIN_FITNESS, Outcome, better_fit, is_poor
 from slam6d.relax import Cancelled, RelaxationConfig, RelaxationResult, ScanModels
 from slam6d.relaxation_methods import models_icp_config, relax_poses
 from slam6d.scan import ScanSequence
+from slam6d.scan_store import ScanStore
+from slam6d.scheduler import Scheduler
 from slam6d.trace import to_jsonable, write_trace
 
 MATCHING = ("metascan", "pairwise")
@@ -166,7 +168,17 @@ class PipelineConfig:
 class Pipeline:
     """A steppable run over a :class:`ScanSequence`; see the module docstring."""
 
-    def __init__(self, sequence: ScanSequence, config: PipelineConfig = PipelineConfig()) -> None:
+    def __init__(
+        self,
+        sequence: ScanSequence,
+        config: PipelineConfig = PipelineConfig(),
+        store: ScanStore | None = None,
+        scheduler: Scheduler | None = None,
+    ) -> None:
+        """``store``: the scans' points on disk (:mod:`slam6d.scan_store`), read once for the reduction
+        instead of from ``sequence``, whose scans then need only their poses and names.
+        ``scheduler`` (:mod:`slam6d.scheduler`): where the reduction and LUM's per-scan blocks run
+        (a Dask cluster's workers read a store themselves); None keeps everything in this process."""
         if len(sequence) == 0:
             raise Slam6dError("the sequence has no scans")
         self.sequence = sequence
@@ -194,19 +206,32 @@ class Pipeline:
             self._icp_config, epsilon=max(config.icp.epsilon, config.registration_epsilon)
         )
         began = time.perf_counter()
+
         # The per-scan work here and in _prepare is compiled code and kd-tree builds that release the
         # GIL, so it runs on a second thread beside the main one.
-        points = [scan.points for scan in sequence]
-        if WORKER_THREADS > 1 and len(points) > 1:
+        def reduced_scan(k: int) -> np.ndarray:
+            return self._reduce(store.points(k) if store is not None else sequence[k].points)
+
+        self.scheduler = scheduler
+        if scheduler is not None:
+            voxels = [config.voxel_size] * len(sequence)
+            if store is not None:
+                folders = [str(store.directory.resolve())] * len(sequence)  # workers may run elsewhere
+                reduced = scheduler.map(reduce_stored_scan, folders, range(len(sequence)), voxels)
+            else:
+                reduced = scheduler.map(reduce_scan, [scan.points for scan in sequence], voxels)
+        elif WORKER_THREADS > 1 and len(sequence) > 1:
             with ThreadPoolExecutor(WORKER_THREADS) as pool:
-                reduced = list(pool.map(self._reduce, points))
+                reduced = list(pool.map(reduced_scan, range(len(sequence))))
         else:
-            reduced = [self._reduce(p) for p in points]
+            reduced = [reduced_scan(k) for k in range(len(sequence))]
+        sizes = store.counts if store is not None else [len(scan) for scan in sequence]
         self.models = ScanModels(reduced, self._icp_config)
         self._worker = ThreadPoolExecutor(1) if WORKER_THREADS > 1 else None
         self._preparing: dict[int, Future[tuple[ModelIndex, np.ndarray]]] = {}
         self.summaries = [
-            ScanSummary(k, scan.name or f"scan{k:03d}", len(scan), len(reduced[k])) for k, scan in enumerate(sequence)
+            ScanSummary(k, scan.name or f"scan{k:03d}", int(sizes[k]), len(reduced[k]))
+            for k, scan in enumerate(sequence)
         ]
         self._add_time("reduction", time.perf_counter() - began)
         self._occupancy: dict[int, Occupancy] = {}
@@ -276,9 +301,7 @@ class Pipeline:
         self.stage_seconds[stage] = self.stage_seconds.get(stage, 0.0) + seconds
 
     def _reduce(self, points: np.ndarray) -> np.ndarray:
-        if self.config.voxel_size <= 0:
-            return points
-        return points[reduce_points(points, self.config.voxel_size)]
+        return reduce_scan(points, self.config.voxel_size)
 
     def reduced_points(self, index: int) -> np.ndarray:
         return self.models.points[index]
@@ -579,6 +602,7 @@ class Pipeline:
                 cancel=self._cancel,
                 members=members,
                 links=self.links,  # a sequential registration is an edge, however sparse the overlap
+                scheduler=self.scheduler,
             )
 
         disconnected: DisconnectedGraphError | None = None
@@ -657,6 +681,7 @@ class Pipeline:
             relaxation_iterations=r.iterations if r else 0,
             neighbour_pairs=len(r.neighbours) if r else 0,
             max_range=self.max_range(),
+            peak_memory_bytes=peak_memory_bytes(),
             settings=to_jsonable(self.config),
             scan_summaries=list(self.summaries),
             registered_scans=self.registered - len(self.skipped),
@@ -664,6 +689,26 @@ class Pipeline:
             failure=self.failure,
             components=[list(c) for c in self.components],
         )
+
+
+def reduce_scan(points: np.ndarray, voxel_size: float) -> np.ndarray:
+    """One real point per ``voxel_size`` cube (0 = every point): the copy every stage works on."""
+    return points if voxel_size <= 0 else points[reduce_points(points, voxel_size)]
+
+
+def reduce_stored_scan(directory: str, index: int, voxel_size: float) -> np.ndarray:
+    """:func:`reduce_scan` of scan ``index`` of the store at ``directory``, read where this runs
+    (a cluster worker reads the store itself instead of receiving the full cloud)."""
+    return reduce_scan(ScanStore(directory, budget=2**62).points(index), voxel_size)
+
+
+def peak_memory_bytes() -> int:
+    """The process's peak resident memory so far (Linux reports kilobytes, macOS bytes)."""
+    import resource
+    import sys
+
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return int(peak if sys.platform == "darwin" else peak * 1024)
 
 
 def write_results(pipeline: Pipeline, out_dir: Path | str, extra: dict[str, Any] | None = None) -> dict[str, Path]:

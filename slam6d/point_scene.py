@@ -17,11 +17,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from slam6d.errors import Slam6dError
-from slam6d.geometry import Matrix
+from slam6d.geometry import Matrix, transform_points
 from slam6d.scan import ScanSequence
+from slam6d.scan_store import ScanStore
 
 if TYPE_CHECKING:
     from slam6d.camera_path import CameraPath
+
+STREAM_BUDGET = 256 * 10**6  # bytes of full clouds held at once while a stored map is thinned for rendering
 
 ColorMode = Literal["height", "scan", "intensity", "white"]
 COLOR_MODES: tuple[str, ...] = ("height", "scan", "intensity", "white")
@@ -111,26 +114,67 @@ def scene_from_sequence(sequence: ScanSequence, max_points: int | None = 2_000_0
     Thinning is a random sample with the same fraction for every scan, so no scan vanishes and the
     result does not depend on the scan order. Scans without intensity get NaN there (shown grey).
     """
-    total = sum(len(scan) for scan in sequence)
+    return _thinned_scene(
+        [len(scan) for scan in sequence],
+        lambda k: (sequence[k].world_points(), sequence[k].intensity),
+        [scan.pose.copy() for scan in sequence],
+        [scan.name for scan in sequence],
+        max_points,
+        seed,
+        any(scan.intensity is not None for scan in sequence),
+    )
+
+
+def scene_from_store(
+    store: ScanStore, poses: Sequence[Matrix] | None = None, max_points: int | None = 2_000_000, seed: int = 0
+) -> PointScene:
+    """:func:`scene_from_sequence` streamed from a scan store: one scan read at a time (through the
+    store's memory budget) and only its thinned share kept, so a map of any size renders within
+    the budget plus ``max_points``. ``poses`` (canonical frame) default to the store's own."""
+    placed = list(store.poses) if poses is None else [np.asarray(p, dtype=np.float64) for p in poses]
+    if len(placed) != len(store):
+        raise Slam6dError(f"{store.directory}: {len(placed)} poses for {len(store)} stored scans")
+    return _thinned_scene(
+        [int(c) for c in store.counts],
+        lambda k: (transform_points(placed[k], store.points(k)), None),
+        placed,
+        list(store.names),
+        max_points,
+        seed,
+        False,
+    )
+
+
+def _thinned_scene(
+    sizes: Sequence[int],
+    load: Callable[[int], tuple[NDArray[np.float64], NDArray[np.float32] | None]],
+    poses: list[Matrix],
+    names: list[str],
+    max_points: int | None,
+    seed: int,
+    any_intensity: bool,
+) -> PointScene:
+    """Each scan's world points (``load(k)``, asked once per scan, in order) thinned by one fraction."""
+    total = int(sum(sizes))
     fraction = 1.0 if not max_points or total <= max_points else max_points / total
     rng = np.random.default_rng(seed)
-    any_intensity = any(scan.intensity is not None for scan in sequence)
     chunks, indices, intensities = [], [], []
-    for i, scan in enumerate(sequence):
-        keep = slice(None) if fraction >= 1.0 else rng.random(len(scan)) < fraction
-        pts = scan.world_points()[keep]
+    for i, size in enumerate(sizes):
+        keep = slice(None) if fraction >= 1.0 else rng.random(size) < fraction
+        world, intensity = load(i)
+        pts = world[keep]
         chunks.append(pts)
         indices.append(np.full(len(pts), i, dtype=np.int32))
         if any_intensity:
-            values = scan.intensity[keep] if scan.intensity is not None else np.full(len(pts), np.nan, np.float32)
+            values = intensity[keep] if intensity is not None else np.full(len(pts), np.nan, np.float32)
             intensities.append(np.asarray(values, dtype=np.float32))
     points = np.concatenate(chunks) if chunks else np.zeros((0, 3))
     return scene_from_points(
         points,
         np.concatenate(indices) if indices else None,
         np.concatenate(intensities) if any_intensity else None,
-        [scan.pose.copy() for scan in sequence],
-        [scan.name for scan in sequence],
+        poses,
+        names,
         total,
     )
 
@@ -145,10 +189,19 @@ def load_render_input(
     """Points with their latest poses from a session folder or a scan directory/file, plus any saved path.
 
     A folder holding ``session.toml`` is opened as a workbench session (its latest registration and
-    its saved camera path, if any); anything else is read with :func:`slam6d.io.read_sequence`.
+    its saved camera path, if any); a scan store (``slam6d run --memory-budget``'s ``OUT/scan_store``,
+    with ``poses_file`` its ``poses_kitti.txt``) is streamed (:func:`scene_from_store`); anything else is read with :func:`slam6d.io.read_sequence`.
     """
     source = Path(source)
     camera_path: CameraPath | None = None
+    if ScanStore.holds(source):  # streamed: never the whole session in memory
+        store = ScanStore(source, STREAM_BUDGET)
+        poses = None
+        if poses_file is not None:
+            from slam6d.io.poses import read_poses_file
+
+            poses = [store.convention.pose_to_canonical(p) for p in read_poses_file(poses_file)]
+        return scene_from_store(store, poses, max_points), None
     if source.is_dir() and (source / "session.toml").is_file():
         try:
             from slam6d.session import Session

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -31,6 +32,9 @@ from slam6d.lum import lum_relaxation
 from slam6d.octree import reduce_points
 from slam6d.relax import Progress, RelaxationConfig, RelaxationResult, ScanModels
 from slam6d.simultaneous import simultaneous_matching
+
+if TYPE_CHECKING:
+    from slam6d.scheduler import Scheduler
 
 RELAXATION_METHODS = ("lum", "graph", "simultaneous")
 
@@ -64,6 +68,7 @@ def relax_poses(
     edge_progress: Callable[[int, int], None] | None = None,
     members: Iterable[int] | None = None,
     links: Iterable[tuple[int, int]] = (),
+    scheduler: Scheduler | None = None,
 ) -> RelaxationResult:
     """Relax ``poses`` with the method named (table above); ``edges`` is the graph ``graph`` relaxes over.
 
@@ -72,14 +77,23 @@ def relax_poses(
     neighbours by ``lum`` and ``simultaneous`` however little they overlap (``graph`` has them as
     edges already). ``progress(round, residual, moved)`` after each round; ``edge_progress(done,
     total)`` after each edge's ICP (``graph`` only); :class:`~slam6d.errors.Cancelled` when
-    ``cancel()`` turns true.
+    ``cancel()`` turns true. A ``scheduler`` (:mod:`slam6d.scheduler`) spreads ``lum``'s per-scan
+    blocks over a cluster; the other methods run here.
     """
     fixed = list(fixed)
     current = [np.asarray(p, dtype=np.float64) for p in poses]
     links = list(links)
     if method == "lum":
         return lum_relaxation(
-            models, current, fixed=fixed, config=config, members=members, progress=progress, cancel=cancel, links=links
+            models,
+            current,
+            fixed=fixed,
+            config=config,
+            members=members,
+            progress=progress,
+            cancel=cancel,
+            links=links,
+            scheduler=scheduler,
         )
     if method == "simultaneous":
         return simultaneous_matching(

@@ -243,3 +243,54 @@ def test_lum_pairs_against_a_shared_registration_model(loop_scans) -> None:  # t
     assert absolute_trajectory_error(result.poses, sim.truth, align=False).rmse < 0.012
     with pytest.raises(ValueError, match="scan 1"):
         models.share_plane_model(1, ModelIndex(models.points[2]))
+
+
+def _dense_loop(scans: int, points: int = 4000):  # type: ignore[no-untyped-def]
+    from slam6d.octree import reduce_points
+
+    sim = simulated_loop(scans=scans, points=points, seed=4, loop_length=16.0, loop_width=10.0)
+    reduced = [s.points[reduce_points(s.points, 0.1)] for s in sim.sequence]
+    return sim, ScanModels(reduced, ICPConfig(max_distance=0.3, max_iterations=30))
+
+
+def _components(count: int, pairs) -> int:  # type: ignore[no-untyped-def]
+    parent = list(range(count))
+
+    def root(k: int) -> int:
+        while parent[k] != k:
+            k = parent[k]
+        return k
+
+    for p in pairs:
+        parent[root(p.i)] = root(p.j)
+    return len({root(k) for k in range(count)})
+
+
+@pytest.mark.parametrize("scans", [24, 72])
+def test_bounded_neighbour_graph_stays_connected_within_its_bound(scans: int) -> None:
+    """Whatever the density, each scan chooses at most ``per_scan`` neighbours (so the graph has at
+    most per_scan x scans pairs) and the graph stays one piece, with the loop's closing pairs in it."""
+    sim, models = _dense_loop(scans)
+    per_scan = 6
+    every = neighbour_pairs(models, sim.truth, min_pairs=100)
+    bounded = neighbour_pairs(models, sim.truth, min_pairs=100, per_scan=per_scan)
+    assert len(bounded) <= per_scan * scans
+    assert all(p.pairs > 100 and p.i < p.j for p in bounded)
+    assert _components(scans, bounded) == 1
+    linked = {(p.i, p.j) for p in bounded}
+    assert all((k, k + 1) in linked for k in range(scans - 1))
+    # spread along the path: pairs across the loop's seam (first scans with the last ones) are kept
+    assert any(p.j - p.i > scans // 2 for p in bounded)
+    if scans == 72:  # dense: every overlapping pair is several times the bound
+        assert len(every) > 2 * len(bounded)
+
+
+def test_bounded_graph_relaxes_a_dense_loop_as_well_as_the_full_graph() -> None:
+    sim, models = _dense_loop(24, points=30000)
+    start = _perturbed(sim.truth, 5)
+    errors = {}
+    for per_scan in (0, 8):
+        config = RelaxationConfig(min_pairs=100, neighbours_per_scan=per_scan)
+        result = lum_relaxation(models, start, fixed=[0], config=config)
+        errors[per_scan] = absolute_trajectory_error(result.poses, sim.truth, align=False).rmse
+    assert errors[0] < 0.01 and errors[8] < 1.3 * errors[0] + 0.002, errors

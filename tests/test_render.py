@@ -299,3 +299,70 @@ def test_kurt3d_frame_reads_as_a_scene(shared_data: Path, artifacts_dir: Path) -
     assert covered > 0.6
     grey = image[renderer.index >= 0].mean(axis=1)
     assert grey.std() > 20  # shading varies: not a flat silhouette
+
+
+def test_overlapped_encoding_writes_every_frame_in_order(tmp_path: Path) -> None:
+    """Frames go to the encoder on a writer thread, from copies: the caller may reuse its buffer at once."""
+    import imageio_ffmpeg
+
+    from slam6d.video import FrameSink
+
+    sink = FrameSink(tmp_path / "grey.mp4", 64, 48, fps=10)
+    image = np.empty((48, 64, 3), dtype=np.uint8)
+    levels = [(37 * k) % 250 for k in range(25)]
+    for level in levels:
+        image[:] = level  # the same buffer every frame, as the renderer does
+        sink.write(image)
+    sink.commit()
+    reader = imageio_ffmpeg.read_frames(str(tmp_path / "grey.mp4"))
+    meta = next(reader)
+    read = [float(np.frombuffer(frame, dtype=np.uint8).mean()) for frame in reader]
+    assert tuple(meta["size"]) == (64, 48)
+    np.testing.assert_allclose(read, levels, atol=3)  # H.264 of flat grey: within a few levels
+
+
+def test_encoder_failure_is_raised_and_leaves_nothing(tmp_path: Path) -> None:
+    from slam6d.video import FrameSink
+
+    class Broken:
+        def send(self, frame: object) -> None:
+            raise BrokenPipeError("ffmpeg exited")
+
+        def close(self) -> None:
+            pass
+
+    sink = FrameSink(tmp_path / "fly.mp4", 64, 48, fps=10)
+    real = sink._writer
+    sink._writer = Broken()
+    with pytest.raises(Slam6dError, match="encoder failed: ffmpeg exited"):
+        for _ in range(50):
+            sink.write(np.zeros((48, 64, 3), dtype=np.uint8))
+        sink.commit()
+    sink._writer = real
+    sink.discard()
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_stored_map_streams_into_the_scene_the_sequence_gives(tmp_path: Path) -> None:
+    """`slam6d render OUT/scan_store --poses OUT/poses_kitti.txt`: the map is read one scan at a time
+    within the store's budget and thinned as the in-memory sequence would be."""
+    from slam6d.geometry import UOS
+    from slam6d.io.poses import write_kitti_poses
+    from slam6d.point_scene import scene_from_store
+    from slam6d.scan_store import ScanStore
+
+    sequence = _two_scan_sequence(20_000)
+    for scan in sequence:
+        scan.points = scan.points.astype(np.float32).astype(np.float64)
+    directory = ScanStore.create(tmp_path / "scan_store", [Scan(s.points, np.eye(4), s.name) for s in sequence], UOS)
+    write_kitti_poses(tmp_path / "poses.txt", [UOS.pose_to_native(s.pose) for s in sequence])
+    want = scene_from_sequence(sequence, max_points=10_000)
+    got, path = load_render_input(directory, poses_file=tmp_path / "poses.txt", max_points=10_000)
+    assert path is None and got.total_points == 40_000 and len(got) == len(want)
+    np.testing.assert_allclose(got.world_points(), want.world_points(), atol=1e-4)
+    np.testing.assert_array_equal(got.scan_index, want.scan_index)
+    store = ScanStore(directory, budget=20_000 * 24)  # one scan's cloud at a time
+    scene_from_store(store, [s.pose for s in sequence], max_points=10_000)
+    assert store.peak_bytes <= store.budget and store.loads == 2
+    with pytest.raises(Slam6dError, match="1 poses for 2 stored scans"):
+        scene_from_store(store, [np.eye(4)])
