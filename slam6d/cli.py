@@ -397,6 +397,13 @@ def run(
             }
         )
 
+    if scheduler is not None:
+        from slam6d.scheduler import SchedulerError, local_workers
+
+        try:
+            local_workers(scheduler)
+        except SchedulerError as exc:
+            raise typer.BadParameter(str(exc), param_hint="--scheduler") from None
     budget = None
     if memory_budget is not None:
         from slam6d.scan_store import parse_bytes

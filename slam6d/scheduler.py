@@ -28,7 +28,7 @@ from slam6d.errors import Slam6dError
 
 T = TypeVar("T")
 
-__all__ = ["DaskScheduler", "Scheduler", "SchedulerError", "SerialScheduler", "open_scheduler"]
+__all__ = ["DaskScheduler", "Scheduler", "SchedulerError", "SerialScheduler", "local_workers", "open_scheduler"]
 
 
 class SchedulerError(Slam6dError):
@@ -94,11 +94,9 @@ class DaskScheduler:
         return f"DaskScheduler({self.address!r})"
 
 
-def open_scheduler(spec: str | None) -> Scheduler:
-    """``None`` -> :class:`SerialScheduler`; ``local:N`` -> a new loopback LocalCluster of N workers;
-    ``tcp://HOST:PORT`` (or ``tls://``) -> the running Dask scheduler there."""
-    if spec is None or spec in ("", "serial"):
-        return SerialScheduler()
+def local_workers(spec: str) -> int | None:
+    """N for ``local:N``, None for a cluster address; raises :class:`SchedulerError` for anything else
+    (checked before a run reads its scans)."""
     if spec.startswith("local:"):
         try:
             workers = int(spec.split(":", 1)[1])
@@ -106,6 +104,19 @@ def open_scheduler(spec: str | None) -> Scheduler:
             workers = 0
         if workers < 1:
             raise SchedulerError(f"--scheduler {spec!r}: write local:N with N >= 1 worker processes")
+        return workers
+    if "://" not in spec:
+        raise SchedulerError(f"--scheduler {spec!r}: write local:N or tcp://HOST:PORT")
+    return None
+
+
+def open_scheduler(spec: str | None) -> Scheduler:
+    """``None`` -> :class:`SerialScheduler`; ``local:N`` -> a new loopback LocalCluster of N workers;
+    ``tcp://HOST:PORT`` (or ``tls://``) -> the running Dask scheduler there."""
+    if spec is None or spec in ("", "serial"):
+        return SerialScheduler()
+    workers = local_workers(spec)
+    if workers is not None:
         from dask.distributed import Client, LocalCluster
 
         cluster = LocalCluster(
@@ -117,12 +128,10 @@ def open_scheduler(spec: str | None) -> Scheduler:
             silence_logs=40,  # logging.ERROR: a run's output stays the run's
         )
         return DaskScheduler(Client(cluster), cluster, spec)
-    if "://" in spec:
-        from dask.distributed import Client
+    from dask.distributed import Client
 
-        try:
-            client = Client(spec, timeout=10)
-        except (OSError, TimeoutError) as exc:
-            raise SchedulerError(f"--scheduler {spec}: no Dask scheduler answers there ({exc})") from exc
-        return DaskScheduler(client, None, spec)
-    raise SchedulerError(f"--scheduler {spec!r}: write local:N or tcp://HOST:PORT")
+    try:
+        client = Client(spec, timeout=10)
+    except (OSError, TimeoutError) as exc:
+        raise SchedulerError(f"--scheduler {spec}: no Dask scheduler answers there ({exc})") from exc
+    return DaskScheduler(client, None, spec)

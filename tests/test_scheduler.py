@@ -118,3 +118,13 @@ def test_cli_run_on_local_workers_and_without_dask(tmp_path: Path) -> None:
         report = json.loads((out / "report.json").read_text())
         assert report["scan_store"]["peak_bytes"] <= 50 * 10**6 and report["peak_memory_bytes"] > 0
     np.testing.assert_allclose(poses["cluster"], poses["serial"], atol=1e-4)  # centimetres
+
+
+def test_cli_refuses_a_bad_scheduler_or_budget_before_reading(tmp_path: Path) -> None:
+    from typer.testing import CliRunner
+
+    from slam6d.cli import app
+
+    for option, value, message in (("--scheduler", "cluster", "local:N"), ("--memory-budget", "lots", "memory size")):
+        result = CliRunner().invoke(app, ["run", str(tmp_path), "--out", str(tmp_path / "out"), option, value])
+        assert result.exit_code == 2 and message in result.output, result.output
