@@ -41,6 +41,7 @@ from urllib.parse import parse_qsl, urlsplit
 
 from fastapi import HTTPException, WebSocketException, params
 from fastapi.routing import APIRoute
+from pydantic import BaseModel
 from starlette.datastructures import Headers
 from starlette.requests import HTTPConnection
 from starlette.routing import BaseRoute
@@ -56,6 +57,21 @@ LOOPBACK_NAMES = frozenset({"localhost", "localhost.localdomain", "ip6-localhost
 
 # The one user of a server open on loopback: may do everything, has no name of its own.
 OPEN_GRANT = Grant(id="local", role=Role.owner, session=None, name="", created="", expires=None, revoked=False)
+
+
+class Refusal(BaseModel):
+    """What the guard answers when it refuses a request."""
+
+    detail: str
+
+
+# documented on every route: what any request may be answered by the guard
+GUARD_RESPONSES: dict[int | str, dict[str, Any]] = {
+    400: {"model": Refusal, "description": "Host is not a name of this server (DNS rebinding)"},
+    401: {"model": Refusal, "description": "no valid access token (a shared server)"},
+    403: {"model": Refusal, "description": "the token's role or session does not allow this, or a cross-site request"},
+    415: {"model": Refusal, "description": "a POST without a JSON (or, where taken, form) body"},
+}
 
 
 def requires(role: Role, any_session: bool = False) -> dict[str, Any]:
@@ -275,6 +291,7 @@ async def _refuse(scope: Scope, receive: Receive, send: Send, error: GuardError)
 
 
 __all__ = [
+    "GUARD_RESPONSES",
     "OPEN_GRANT",
     "TOKEN_COOKIE",
     "GuardError",

@@ -15,12 +15,36 @@ from typing import Any
 
 from fastapi import FastAPI, HTTPException, Request
 from fastapi.responses import JSONResponse
+from pydantic import BaseModel
 from starlette.requests import HTTPConnection
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from slam6d.journal import EditConflictError, Journal, JournalEntry, StaleRevisionError, expect_head
 
 READ_METHODS = frozenset({"GET", "HEAD", "OPTIONS"})
+
+
+class RevisionEntry(BaseModel):
+    revision: int | None
+    kind: str
+    author: str
+    time: str
+
+
+class StaleRevision(BaseModel):
+    """A 412: the session's head and what changed it since the revision the request named."""
+
+    detail: str
+    head: int | None
+    since: list[RevisionEntry]
+
+
+REVISION_RESPONSES: dict[int | str, dict[str, Any]] = {
+    412: {
+        "model": StaleRevision,
+        "description": "If-Match names a revision that is no longer the head; nothing applied",
+    },
+}
 
 
 def entry_summary(entry: JournalEntry) -> dict[str, Any]:
@@ -115,4 +139,4 @@ def add_revision_errors(app: FastAPI) -> None:
     app.add_exception_handler(EditConflictError, conflict)
 
 
-__all__ = ["RevisionHeaders", "add_revision_errors", "check_revision", "parse_revision_tag"]
+__all__ = ["REVISION_RESPONSES", "RevisionHeaders", "add_revision_errors", "check_revision", "parse_revision_tag"]

@@ -22,9 +22,17 @@ from fastapi.staticfiles import StaticFiles
 
 from app.data_root import DataRoot
 from app.errors import UnknownSessionError
-from app.guard import GuardPolicy, RequestGuard, authorize, is_loopback, server_names, session_from_path
+from app.guard import (
+    GUARD_RESPONSES,
+    GuardPolicy,
+    RequestGuard,
+    authorize,
+    is_loopback,
+    server_names,
+    session_from_path,
+)
 from app.limits import RequestLimits
-from app.revisions import RevisionHeaders, add_revision_errors, check_revision
+from app.revisions import REVISION_RESPONSES, RevisionHeaders, add_revision_errors, check_revision
 from app.routes import API_ROUTERS
 from app.routes.dependencies import REQUIRE_SESSION
 from app.routes.errors import document_errors, install_error_handlers
@@ -151,6 +159,7 @@ def add_guards(
             return None
 
     policy = GuardPolicy(tokens, require_token, server_names(bind_host, names), session_of)
+    app.router.responses.update({**GUARD_RESPONSES, **REVISION_RESPONSES})  # in every route's OpenAPI
     add_revision_errors(app)
     app.add_middleware(RevisionHeaders, journal_of=journal_of)
     app.add_middleware(RequestGuard, policy=policy)  # outermost: nothing is answered before it

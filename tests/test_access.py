@@ -310,3 +310,12 @@ def test_owners_create_and_revoke_share_links(shared: TestClient) -> None:
     assert shared.get(f"/api/sessions/{SESSION}", headers=viewer).status_code == 401
     bad = shared.post(f"/api/sessions/{SESSION}/tokens", json={"name": "x", "expires": "soon"}, headers=owner)
     assert bad.status_code == 422 and "'soon' is not a duration" in bad.json()["detail"]
+
+
+def test_every_operation_documents_what_the_guard_may_answer(shared: TestClient) -> None:
+    for template, methods in shared.app.openapi()["paths"].items():  # type: ignore[attr-defined]
+        for method, operation in methods.items():
+            documented = set(operation["responses"])
+            assert {"400", "401", "403"} <= documented, (method, template)
+            if method in MUTATING:
+                assert {"412", "415"} <= documented, (method, template)

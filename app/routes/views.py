@@ -139,4 +139,6 @@ def follow(session_id: str, key: str, body: FollowBody, request: Request) -> dic
         presence.follow(key, body.target)
     except LookupError as exc:
         raise EditError(str(exc), 404) from None
+    except ValueError as exc:
+        raise EditError(str(exc), 409) from None
     return {"key": key, "follows": body.target}

@@ -175,6 +175,12 @@ class Presence:
                 raise LookupError(f"no browser '{key}' on this view")
             if target is not None and (leader is None or leader is person):
                 raise LookupError(f"no other browser '{target}' on this view to follow")
+            step, seen = leader, set()
+            while step is not None and step.follows is not None and step.key not in seen:  # no circles
+                seen.add(step.key)
+                if step.follows == key:
+                    raise ValueError(f"{leader.grant.name or target} follows you already")  # type: ignore[union-attr]
+                step = self.person(step.follows)
             person.follows = target
         if leader is not None:
             _set_camera(person.client, leader.camera())

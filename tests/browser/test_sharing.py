@@ -194,6 +194,12 @@ def test_presence_shows_the_other_browser_as_a_frustum_and_follow_takes_its_view
     assert moved.status_code == 200, moved.text
     _wait(lambda: np.allclose(bob.client.camera.position, place["position"], atol=1e-3), what="bob's view following")
     assert np.allclose(bob.client.camera.look_at, place["look_at"], atol=1e-3)
+    circle = httpx.post(
+        f"{server.url}/api/sessions/corridor/presence/{keys['ann']}/follow",
+        json={"target": keys["bob"]},
+        headers={"Authorization": f"Bearer {ann_token}"},
+    )
+    assert circle.status_code == 409 and "follows you already" in circle.json()["detail"]
     # nobody may steer someone else's view
     other = httpx.post(
         f"{server.url}/api/sessions/corridor/presence/{keys['bob']}/camera",

@@ -48,7 +48,10 @@ def test_corridor_map_is_drawn_through_the_single_port(corridor_sessions, live_s
     open_session(page, server, "corridor")
     assert wait_for_map(page) >= 0.01
     page.screenshot(path=str(artifacts_dir / "workbench_corridor.png"))
-    assert sockets == [f"ws://127.0.0.1:{server.port}/viser/corridor"]
+    # one websocket, through the workbench's port, under the page's own view key (presence)
+    assert len(sockets) == 1 and re.fullmatch(
+        rf"ws://127\.0\.0\.1:{server.port}/viser/corridor/as/[0-9a-f]{{16}}", sockets[0]
+    )
 
 
 def test_second_browser_sees_the_first_ones_edit(corridor_sessions, live_server, new_browser, artifacts_dir):
