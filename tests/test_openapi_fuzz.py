@@ -25,7 +25,8 @@ def _app():  # type: ignore[no-untyped-def]
 
     shutil.rmtree(SESSIONS, ignore_errors=True)
     corridor_session(SESSIONS, scans=3, points=300)
-    return create_app(SESSIONS, viewers=False, max_upload_mb=1)
+    # in-process requests name the host "testserver": a name this server answers to here
+    return create_app(SESSIONS, viewers=False, max_upload_mb=1, names=("testserver",))
 
 
 schema = schemathesis.openapi.from_asgi("/openapi.json", _app())
