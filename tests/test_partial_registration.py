@@ -24,7 +24,7 @@ def test_a_disconnected_registration_becomes_a_revision_with_its_components(tmp_
         write_uos_scan(folder / "scans", k, UOS.points_to_native(scan.points), UOS.pose_to_native(pose))
     # the global feature guess would (rightly) find the far copies overlapping the first scans
     Session.create(folder, "Apart", "scans", engine={"loops": False, "feature_guess": False})
-    with TestClient(create_app(tmp_path / "sessions", viewers=False)) as client:
+    with TestClient(create_app(tmp_path / "sessions", viewers=False), base_url="http://127.0.0.1") as client:
         started = client.post("/api/sessions/apart/jobs", json={"kind": "register"}, headers={"X-Author": "ana"})
         job = client.app.state.workbench.jobs.wait(started.json()["id"], timeout=300)
         assert job.status == "failed"
