@@ -95,16 +95,15 @@ class SelfConsistency:
     relative pose the trajectory gives a far-apart overlapping pair (i, j); the mean displacement
     of scan j's points is how far the trajectory sits from that pair's own optimum. Two pair sets:
 
-    * ``named`` (:data:`CHECK_PAIRS`): the issue's 0-88, 10-88, 0-60, 57-88 and three of ours, all
-      far apart and mostly weakly overlapping: the hardest pairs of the walk.
+    * ``named`` (:data:`CHECK_PAIRS`): 0-88, 10-88, 0-60, 57-88, 5-80, 20-70 and 30-60, all far
+      apart and mostly weakly overlapping: the hardest pairs of the walk.
     * ``far``: every pair at least :data:`FAR_GAP` scans apart whose reference positions lie within
       :data:`FAR_RADIUS` of each other, one in five of them (i + j divisible by 5, to keep the check
-      near 15 s). It reproduces the issue's calibration: the reference itself scores 9.5 cm there
-      (issue: 8.4 cm), small_gicp + gtsam 2.4 cm (issue: 2.3 cm), while on ``named`` they score
-      14.8 and 4.1 cm.
+      near 15 s). The reference itself scores 9.5 cm there and small_gicp + gtsam 2.4 cm, while on
+      ``named`` they score 14.8 and 4.1 cm.
 
     The mean point displacement is the verdict. :meth:`origin_shift` is printed beside it: how far
-    ICP moves scan j's origin, the other reading of the issue's "moves them". It too reproduces
+    ICP moves scan j's origin, the other reading of "moves them". It too reproduces
     the data's own description of the reference (0-88 21.3 cm, 57-88 7.6 cm; "~21", "~8"), but
     counts a rotation error only where the origin lies, not at the scan's far points.
 

@@ -13,7 +13,8 @@ from fastapi.responses import RedirectResponse, Response
 from starlette.concurrency import run_in_threadpool
 
 from app.errors import UnknownSessionError
-from app.view.proxy import forward_file, forward_socket
+from app.view.names import AUTHOR_COOKIE, name_from_cookie
+from app.view.proxy import forward_file, forward_socket, open_upstream
 from app.view.registry import ViewerRegistry
 
 router = APIRouter()
@@ -38,12 +39,17 @@ async def viser_files(session_id: str, path: str, request: Request) -> Response:
 
 @router.websocket("/viser/{session_id}")
 async def viser_socket(websocket: WebSocket, session_id: str) -> None:
+    """The 3D view's websocket; the browser arrives under the name its page put in the author cookie."""
+    registry: ViewerRegistry = websocket.app.state.viewers
     try:
-        port = await _viewer_port(websocket.app.state.viewers, session_id)
+        viewer = await run_in_threadpool(registry.get, session_id)
     except UnknownSessionError:
         await websocket.close(code=4404)
         return
-    await forward_socket(websocket, port)
+    name = name_from_cookie(websocket.cookies.get(AUTHOR_COOKIE))
+    upstream = await viewer.names.admit(name, lambda: open_upstream(websocket, viewer.port))
+    if upstream is not None:
+        await forward_socket(websocket, upstream)
 
 
 @router.get("/api/sessions/{session_id}/view", tags=["view"])

@@ -1,11 +1,22 @@
-// Shared by the pages: who is acting (sent as X-Author so the journal records it) and REST calls.
+// Shared by the pages: who is acting and REST calls. One name per person: typed in the page header,
+// sent as X-Author with every REST call and mirrored into the slam6d-author cookie, which the 3D view's
+// websocket carries, so the buttons in the 3D view act under the same name.
 export function authorName() {
   return localStorage.getItem("slam6d-author") || "";
 }
 
-export function bindAuthorField(input) {
+function storeAuthorCookie(name) {
+  document.cookie = `slam6d-author=${encodeURIComponent(name)}; path=/; SameSite=Strict; max-age=31536000`;
+}
+
+export function bindAuthorField(input, onChange = () => {}) {
   input.value = authorName();
-  input.addEventListener("change", () => localStorage.setItem("slam6d-author", input.value.trim()));
+  storeAuthorCookie(authorName());
+  input.addEventListener("change", () => {
+    localStorage.setItem("slam6d-author", input.value.trim());
+    storeAuthorCookie(input.value.trim());
+    onChange(input.value.trim());
+  });
 }
 
 export async function api(path, options = {}) {

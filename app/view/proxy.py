@@ -16,6 +16,7 @@ import websockets
 from fastapi import Request, WebSocket
 from fastapi.responses import Response
 from starlette.websockets import WebSocketDisconnect
+from websockets.asyncio.client import ClientConnection
 from websockets.asyncio.client import connect as ws_connect
 
 _PASSED_HEADERS = ("content-type", "content-encoding", "cache-control", "etag", "last-modified")
@@ -35,11 +36,12 @@ async def forward_file(client: httpx.AsyncClient, port: int, path: str, request:
     return Response(body, status_code=upstream.status_code, headers=passed)
 
 
-async def forward_socket(websocket: WebSocket, port: int) -> None:
-    """Join the browser's websocket to the view's internal one until either side closes."""
+async def open_upstream(websocket: WebSocket, port: int) -> ClientConnection | None:
+    """The view's internal websocket for this browser, with the subprotocol it offered; None (and the
+    browser's socket closed) when the view does not answer."""
     offered = [p for p in websocket.scope.get("subprotocols", []) if p.startswith("viser-v")]
     try:
-        upstream = await ws_connect(
+        return await ws_connect(
             f"ws://127.0.0.1:{port}",
             subprotocols=[websockets.Subprotocol(p) for p in offered] or None,
             max_size=None,
@@ -49,7 +51,11 @@ async def forward_socket(websocket: WebSocket, port: int) -> None:
         )
     except (OSError, websockets.InvalidHandshake, TimeoutError):
         await websocket.close(code=1011)
-        return
+        return None
+
+
+async def forward_socket(websocket: WebSocket, upstream: ClientConnection) -> None:
+    """Accept the browser's websocket and join it to the view's internal one until either side closes."""
     await websocket.accept(subprotocol=upstream.subprotocol)
 
     async def to_browser() -> None:

@@ -27,6 +27,7 @@ from app.registration import registration_job
 from app.view.colouring import Colouring
 from app.view.controls import ViewControls
 from app.view.graph_overlay import GraphOverlay
+from app.view.names import BrowserNames
 from app.view.panels import build_panels
 from app.view.panels.fly_through import FlyThroughPanel
 from app.view.panels.progress import show_job_progress
@@ -64,12 +65,13 @@ class SessionViewer(SceneStream, Colouring, Picking, Playback, GraphOverlay):
         self.init_playback()
         self.init_graph_overlay(float(pipeline_config(self.state.session.config.engine).icp.max_distance))
         self.stepper: Stepper | None = None
-        self.client_names: dict[int, Any] = {}
+        self.names = BrowserNames()  # who is behind each browser: the name typed in the page header
         self.controls = ViewControls(self.server.gui)
         self._wire_controls()
         self.fly_through = FlyThroughPanel(self)  # the "Fly-through" folder
         self.panels = build_panels(self)  # loops, graph edits, octree guess, replay (app/view/panels)
         self.server.on_client_connect(self._on_connect)
+        self.server.on_client_disconnect(lambda client: self.names.client_left(client.client_id))
         threading.Thread(target=self.load, name=f"viewer-load-{session_id}", daemon=True).start()
 
     def _wire_controls(self) -> None:
@@ -91,13 +93,12 @@ class SessionViewer(SceneStream, Colouring, Picking, Playback, GraphOverlay):
     # -------------------------------------------------------------- who acts, and what went wrong
 
     def _on_connect(self, client: viser.ClientHandle) -> None:
-        # Each browser has its own name field, so the journal records who pressed a button.
-        self.client_names[client.client_id] = client.gui.add_text("Your name", f"guest-{client.client_id}", order=-1)
+        self.names.client_connected(client.client_id)
         self.client_seen.set()
 
     def author(self, event: Any) -> str:
-        field = self.client_names.get(getattr(event, "client_id", -1))
-        return (field.value.strip() if field is not None else "") or "anonymous"
+        """Who pressed a button: the name the person's page carries (the journal records it)."""
+        return self.names.of(getattr(event, "client_id", None))
 
     def run_safely(self, action: Callable[[], object]) -> None:
         """GUI callbacks and the panels' background refreshes: an error the user can act on becomes a

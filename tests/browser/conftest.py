@@ -147,6 +147,18 @@ def viewer_frame(page):  # type: ignore[no-untyped-def]
     return page.frame_locator("#viewer")
 
 
+def set_name(page, server, session_id: str, name: str, timeout: float = 30.0) -> None:  # type: ignore[no-untyped-def]
+    """Type the one name field (page header); wait until the 3D view has reconnected under it and shows its panels."""
+    page.locator("#author").fill(name)
+    page.locator("#author").dispatch_event("change")
+    names = server.app.state.viewers.get(session_id).names
+    deadline = time.monotonic() + timeout
+    while name not in names.connected().values():
+        assert time.monotonic() < deadline, f"the 3D view never connected as {name!r}: {names.connected()}"
+        time.sleep(0.05)
+    viewer_frame(page).get_by_text("points shown").wait_for(timeout=timeout * 1000)  # its panels are drawn again
+
+
 def map_pixels(page, panel_fraction: float = 0.65) -> float:  # type: ignore[no-untyped-def]
     """Fraction of the 3D canvas (left of the control panel) whose colour differs from the background."""
     png = page.locator("#viewer").screenshot()

@@ -35,17 +35,14 @@ def wait_until(condition, timeout: float = 20.0, message: str = "condition not m
         time.sleep(0.1)
 
 
-def set_name(page, frame, name: str) -> None:  # type: ignore[no-untyped-def]
-    row = frame.locator("label", has_text="Your name").locator("xpath=ancestor::div[2]")
-    row.locator("input").fill(name)
-
-
 def test_detect_and_accept_a_loop(loop_sessions, live_server, new_browser, artifacts_dir):
     server = live_server(loop_sessions)
     page = new_browser()
+    page.goto(f"{server.url}/")  # the name typed on the landing page is the one the session page uses
+    page.locator("#author").fill("ana")
+    page.locator("#author").dispatch_event("change")
     open_session(page, server, "loop")
     frame = viewer_frame(page)
-    set_name(page, frame, "ana")
     open_folder(frame, "Loops & relaxation")
     frame.get_by_role("button", name="Detect loops").click()
     frame.get_by_text("pending", exact=True).first.wait_for(timeout=20_000)

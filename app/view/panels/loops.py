@@ -50,7 +50,7 @@ class LoopsPanel:
         self.viewer.workbench.jobs.submit(self.session_id, kind, work, author, extra)
 
     def _relax(self, event: Any) -> None:
-        # check_relaxable (inside relax_job) refuses a disconnected graph before any job starts
+        # relax_job refuses before any job starts what cannot run (no fixed scan; for graph, a disconnected graph)
         self._submit("relax", self.editor.relaxation.relax_job, event, method=self.method.value, fixed=[0])
 
     def _decide(self, accept: bool, event: Any) -> None:
