@@ -172,9 +172,19 @@ def list_scan_files(path: Path, fmt: ScanFormat) -> list[Path]:
         files = fmt.discover(path)
     else:
         files = sorted(p for p in path.iterdir() if p.is_file() and p.suffix.lower() in fmt.suffixes)
+    files = [f for f in files if _inside(f, path)]
     if not files:
         raise FormatError(path, f"no '{fmt.name}' scans found in this directory")
     return files
+
+
+def _inside(file: Path, folder: Path) -> bool:
+    """A listed scan must be the folder's own: a symbolic link leading out of it is left out, so a
+    session over a folder never lists or reads files elsewhere on the machine."""
+    if not file.is_symlink():
+        return True
+    base = folder.resolve() if folder.is_dir() else folder.resolve().parent
+    return file.resolve().is_relative_to(base)
 
 
 def read_sequence(
