@@ -93,11 +93,15 @@ def merged_points(sequence: ScanSequence, voxel_size: float = 0.0) -> tuple[np.n
     return points, np.concatenate([i for i in intensities if i is not None])
 
 
-def export_map(sequence: ScanSequence, format_name: str, voxel_size: float = 0.0) -> tuple[bytes, str, str]:
-    """(content, media type, file name) of the merged map, written by :func:`slam6d.io.map.write_map`."""
+def export_map(
+    sequence: ScanSequence, format_name: str, folder: Path, voxel_size: float = 0.0
+) -> tuple[Path, str, str]:
+    """(file in ``folder``, media type, download name) of the merged map, written by
+    :func:`slam6d.io.map.write_map`. A file, not bytes: a map of millions of points is streamed
+    from disk rather than held in memory once more for the answer."""
     if format_name not in MAP_FORMATS:
         raise Slam6dError(f"unknown map format '{format_name}'; known: {', '.join(MAP_FORMATS)}")
     points, intensity = merged_points(sequence, voxel_size)
-    suffix = f".{format_name}"
-    content = _written(lambda p: write_map(p, points, intensity=intensity), suffix)
-    return content, "application/octet-stream", f"map{suffix}"
+    path = Path(folder) / f"map.{format_name}"
+    write_map(path, points, intensity=intensity)
+    return path, "application/octet-stream", path.name

@@ -41,6 +41,7 @@ class Job:
     created: float = field(default_factory=time.time)
     finished: float | None = None
     _cancel: threading.Event = field(default_factory=threading.Event, repr=False)
+    _ended: threading.Event = field(default_factory=threading.Event, repr=False)  # recorded and announced
 
     @property
     def active(self) -> bool:
@@ -144,6 +145,7 @@ class JobManager:
         if self._record is not None:
             self._record(job, "finished")
         self._notify(job)
+        job._ended.set()
 
     def get(self, job_id: str) -> Job | None:
         return self._jobs.get(job_id)
@@ -160,8 +162,6 @@ class JobManager:
 
     def wait(self, job_id: str, timeout: float = 30.0) -> Job:
         """Block until the job ends (tests and the command line use this)."""
-        deadline = time.monotonic() + timeout
         job = self._jobs[job_id]
-        while job.active and time.monotonic() < deadline:
-            time.sleep(0.01)
+        job._ended.wait(timeout)  # past its journal record too, not only its final status
         return job

@@ -150,3 +150,16 @@ def test_a_pose_carried_by_a_file_must_be_rigid(tmp_path) -> None:
     path.write_bytes(raw)
     with pytest.raises(FormatError, match=r"scaled\.pcd: pose: translation"):
         read_scan(path)
+
+
+def test_a_scan_folder_never_lists_links_leading_out_of_it(tmp_path) -> None:
+    from slam6d.io.registry import get_format, list_scan_files
+
+    write_corridor_scans(tmp_path / "scans", scans=2, points=50)
+    outside = tmp_path / "elsewhere"
+    outside.mkdir()
+    (outside / "secret.3d").write_text("1 2 3\n")
+    (tmp_path / "scans" / "scan002.3d").symlink_to(outside / "secret.3d")
+    (tmp_path / "scans" / "scan002.pose").write_text("0 0 0\n0 0 0\n")
+    listed = list_scan_files(tmp_path / "scans", get_format("uos"))
+    assert [p.name for p in listed] == ["scan000.3d", "scan001.3d"]

@@ -2,10 +2,14 @@
 
 from __future__ import annotations
 
+import shutil
+import tempfile
+from pathlib import Path
 from typing import Annotated
 
 from fastapi import APIRouter, Query
-from fastapi.responses import PlainTextResponse, Response
+from fastapi.responses import FileResponse, PlainTextResponse, Response
+from starlette.background import BackgroundTask
 
 from app import exports
 from app.errors import WorkbenchError
@@ -52,9 +56,15 @@ def export_map(
     voxel: Annotated[float, Query(ge=0.0, le=100.0, description="metres; 0 keeps every point")] = 0.0,
 ) -> Response:
     """The merged map at the current revision, in world coordinates (metres), optionally voxel-reduced."""
-    with state.lock:
-        content, media, filename = exports.export_map(state.sequence(), format, voxel)
-    return Response(content, media_type=media, headers={"Content-Disposition": f'attachment; filename="{filename}"'})
+    scratch = Path(tempfile.mkdtemp(prefix="map-"))
+    try:
+        with state.lock:
+            path, media, filename = exports.export_map(state.sequence(), format, scratch, voxel)
+    except BaseException:
+        shutil.rmtree(scratch, ignore_errors=True)
+        raise
+    cleanup = BackgroundTask(shutil.rmtree, scratch, ignore_errors=True)
+    return FileResponse(path, media_type=media, filename=filename, background=cleanup)
 
 
 def _revision(state: SessionState, rev: int | None) -> Revision:

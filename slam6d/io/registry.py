@@ -183,6 +183,7 @@ def list_scan_files(path: Path, fmt: ScanFormat, order: str = DEFAULT_ORDER) -> 
         files = fmt.discover(path)
     else:
         files = sort_scan_files(p for p in path.iterdir() if p.is_file() and p.suffix.lower() in fmt.suffixes)
+    files = [f for f in files if _inside(f, path)]
     if not files:
         raise FormatError(path, f"no '{fmt.name}' scans found in this directory")
     if order != DEFAULT_ORDER:
@@ -191,6 +192,15 @@ def list_scan_files(path: Path, fmt: ScanFormat, order: str = DEFAULT_ORDER) -> 
             raise FormatError(path, f"the scan order is fixed by {fixed_by}; --order {order} does not apply")
         files = sort_scan_files(files, order)
     return files
+
+
+def _inside(file: Path, folder: Path) -> bool:
+    """A listed scan must be the folder's own: a symbolic link leading out of it is left out, so a
+    session over a folder never lists or reads files elsewhere on the machine."""
+    if not file.is_symlink():
+        return True
+    base = folder.resolve() if folder.is_dir() else folder.resolve().parent
+    return file.resolve().is_relative_to(base)
 
 
 def read_sequence(
