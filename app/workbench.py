@@ -285,21 +285,17 @@ class Workbench:
 
         Naming the revision makes a retry safe: undoing it again answers where the first undo went.
         """
-        journal = self.state(session_id).session.journal
-        try:
-            rev = journal.undo(author, revision)
-        except StaleRevisionError:
-            raise
-        except SessionError as exc:
-            raise EditError(str(exc)) from None
-        self._changed(session_id)
-        return rev
+        return self._step(session_id, "undo", author, revision)
 
     def redo(self, session_id: str, author: str, revision: int | None = None) -> int:
         """Step forward from ``revision`` (default: the head); EditError (409) when there is nothing to redo."""
+        return self._step(session_id, "redo", author, revision)
+
+    def _step(self, session_id: str, direction: str, author: str, revision: int | None) -> int:
         journal = self.state(session_id).session.journal
+        step = journal.undo if direction == "undo" else journal.redo
         try:
-            rev = journal.redo(author, revision)
+            rev = step(author, revision)
         except StaleRevisionError:
             raise
         except SessionError as exc:

@@ -14,14 +14,12 @@ workbench, so a button and a request do the same thing, and every change is one 
 
 from __future__ import annotations
 
-import threading
-import weakref
-
 from app.editing.context import EditContext
 from app.editing.edges import GraphEdits
 from app.editing.guesses import OctreeGuesses
 from app.editing.loops import LoopReview
 from app.editing.relaxation import Relaxation
+from app.per_owner import PerOwner
 from app.workbench import Workbench
 
 
@@ -36,17 +34,8 @@ class Editor:
         self.guesses = OctreeGuesses(self.context)
 
 
-_editors: weakref.WeakKeyDictionary[Workbench, Editor] = weakref.WeakKeyDictionary()
-_editors_lock = threading.Lock()
-
-
-def editor_for(workbench: Workbench) -> Editor:
-    """The one editor of a workbench (shared by the REST API and the 3D views)."""
-    with _editors_lock:
-        editor = _editors.get(workbench)
-        if editor is None:
-            editor = _editors[workbench] = Editor(workbench)
-        return editor
+editor_for: PerOwner[Workbench, Editor] = PerOwner(Editor)
+"""The one editor of a workbench (shared by the REST API and the 3D views)."""
 
 
 __all__ = ["Editor", "editor_for"]

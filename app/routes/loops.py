@@ -7,7 +7,7 @@ revision of the graph; loop closing (error diffusion) is a job answering 202, po
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Literal
 
 from fastapi import APIRouter
 
@@ -34,16 +34,17 @@ def detect_loops(
     return workbench.jobs.submit(session_id, "detect-loops", work, author, {}).as_dict()
 
 
-@router.post("/loops/{k}/accept", openapi_extra=requires(Role.reviewer))
-def accept_loop(session_id: str, k: IndexPath, editor: EditorDep, author: Author = "anonymous") -> dict[str, Any]:
-    """Hypothesis ``k``'s ICP-verified edge joins the graph (a new revision)."""
-    return editor.loops.decide(session_id, k, True, author)
-
-
-@router.post("/loops/{k}/reject", openapi_extra=requires(Role.reviewer))
-def reject_loop(session_id: str, k: IndexPath, editor: EditorDep, author: Author = "anonymous") -> dict[str, Any]:
-    """Hypothesis ``k`` is turned down (a new revision recording it)."""
-    return editor.loops.decide(session_id, k, False, author)
+@router.post("/loops/{k}/{decision}", openapi_extra=requires(Role.reviewer))
+def decide_loop(
+    session_id: str,
+    k: IndexPath,
+    decision: Literal["accept", "reject"],
+    editor: EditorDep,
+    author: Author = "anonymous",
+) -> dict[str, Any]:
+    """Accept hypothesis ``k`` (its ICP-verified edge joins the graph) or reject it (the refusal is
+    recorded); either way a new revision."""
+    return editor.loops.decide(session_id, k, decision == "accept", author)
 
 
 @router.post("/close-loops", status_code=202)

@@ -19,13 +19,13 @@ from __future__ import annotations
 
 import threading
 import time
-import weakref
 from collections import deque
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
+from app.per_owner import PerOwner
 from app.tokens import Grant
 
 FRUSTUM_SCALE = 0.4  # metres from the eye to the frustum's far rectangle
@@ -201,17 +201,8 @@ def _set_camera(client: Any, camera: dict[str, Any]) -> None:
         client.camera.fov = float(np.radians(camera["fov_deg"]))
 
 
-_presences: weakref.WeakKeyDictionary[Any, Presence] = weakref.WeakKeyDictionary()
-_presences_lock = threading.Lock()
-
-
-def presence_of(viewer: Any) -> Presence:
-    """The presence of a session viewer (made with the viewer, before any browser connects)."""
-    with _presences_lock:
-        found = _presences.get(viewer)
-        if found is None:
-            found = _presences[viewer] = Presence(viewer)
-        return found
+presence_of: PerOwner[Any, Presence] = PerOwner(Presence)
+"""The presence of a session viewer (made with the viewer, before any browser connects)."""
 
 
 __all__ = ["Person", "Presence", "presence_of"]
