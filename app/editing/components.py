@@ -64,20 +64,25 @@ def last_failure(session: Session, number: int) -> dict[str, Any] | None:
     """The failure recorded by the nearest revision at or above ``number`` in its ancestry that a failed
     run committed (stage, reason, the revision, the components then), or None. Ancestry, not journal
     order: after an undo past a failed run, a revision on another branch does not descend from it."""
-    entries = {entry.id: entry for entry in session.journal.entries()}
+    failed = {
+        entry.revision: entry
+        for entry in session.journal.entries()
+        if entry.revision is not None and isinstance(entry.parameters.get("failure"), dict)
+    }
+    if not failed:  # the usual case: nothing to walk
+        return None
+    oldest = min(failed)
     current: int | None = number
-    while current is not None:
-        revision = session.journal.revision(current)
-        if revision is None:
-            return None
-        entry = entries.get(revision.entry_id)
-        failure = None if entry is None else entry.parameters.get("failure")
-        if isinstance(failure, dict):
+    while current is not None and current >= oldest:  # a parent is always older (a smaller number)
+        entry = failed.get(current)
+        if entry is not None:
+            failure = entry.parameters["failure"]
             return {
                 "stage": failure.get("stage"),
                 "reason": failure.get("reason"),
-                "revision": revision.number,
-                "components": entry.parameters.get("components", []) if entry is not None else [],
+                "revision": current,
+                "components": entry.parameters.get("components", []),
             }
-        current = revision.parent
+        revision = session.journal.revision(current)
+        current = None if revision is None else revision.parent
     return None
