@@ -111,7 +111,7 @@ def relax_poses(
 
 def relaxation_components(
     method: str,
-    models: ScanModels,
+    models: ScanModels | None,
     poses: Sequence[Matrix],
     edges: Sequence[GraphEdge] = (),
     config: RelaxationConfig = RelaxationConfig(),
@@ -124,10 +124,13 @@ def relaxation_components(
     find at the current poses (:func:`slam6d.relax.neighbour_pairs` with the relaxation's own
     criterion and bound) plus ``links``. These are the components a relaxation refuses (or relaxes
     one by one in ``slam6d run``), so an operator can see before relaxing which pieces need a bridge.
+    ``models`` may be None for ``graph``, which needs no scan (a caller spares building them).
     """
     if method == "graph":
         pairs = [(e.i, e.j) for e in edges]
     elif method in ("lum", "simultaneous"):
+        if models is None:
+            raise Slam6dError(f"{method} finds its graph from the scans: their models are needed")
         found = neighbour_pairs(models, poses, config.min_pairs, links=links, per_scan=config.neighbours_per_scan)
         pairs = [(p.i, p.j) for p in found]
     else:

@@ -30,7 +30,7 @@ def session_components(context: EditContext, session_id: str, method: str = "lum
     count = len(head.poses)
     components = relaxation_components(
         method,
-        context.models(session_id),
+        None if method == "graph" else context.models(session_id),  # graph needs no scan
         head.poses,
         graph_edges(count, head.graph),
         context.config(session_id).relax,

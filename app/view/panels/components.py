@@ -14,7 +14,7 @@ from __future__ import annotations
 from typing import Any
 
 from app.editing import editor_for
-from app.editing.components import session_components
+from app.editing.components import last_failure, session_components
 from app.view.panels.host import ViewerHost
 
 
@@ -28,10 +28,32 @@ class ComponentsPanel:
         with viewer.server.gui.add_folder("Components", expand_by_default=True):
             self.message = viewer.server.gui.add_markdown("")
         method.on_update(lambda _: viewer.run_safely(self.refresh))
+        colour = viewer.controls.colour
+        colour.on_update(lambda _: self._colour_chosen())
+        self.switching = False  # True while refresh itself turns the component colouring on
+
+    def _colour_chosen(self) -> None:
+        if self.viewer.controls.colour.value == "component" and not self.switching:
+            self.viewer.run_safely(self.refresh)
 
     def refresh(self) -> None:
         viewer = self.viewer
-        found = session_components(self.editor.context, viewer.session_id, str(self.method.value))
+        method = str(self.method.value)
+        session_id = viewer.session_id
+        # lum and simultaneous find their graph from the scans (reduced models, overlap counted): done
+        # when someone looks (component colours) or a failed run left pieces, not on every view of a session
+        wanted = (
+            viewer.controls.colour.value == "component"
+            or last_failure(viewer.state.session, viewer.state.session.revision) is not None
+        )
+        if method != "graph" and not wanted:
+            viewer.component_of = {}
+            self.count = None
+            self.message.content = (
+                f"Choose *Colour by* `component` to see the connected components {method} relaxation would find."
+            )
+            return
+        found = session_components(self.editor.context, session_id, method)
         with viewer.lock:
             viewer.component_of = {k: n for n, group in enumerate(found["components"]) for k in group}
         count = int(found["count"])
@@ -39,7 +61,11 @@ class ComponentsPanel:
         self.count = count
         colour = viewer.controls.colour
         if became_split and colour.value != "component":
-            colour.value = "component"  # type: ignore[misc]  # its update handler recolours
+            self.switching = True
+            try:
+                colour.value = "component"  # type: ignore[misc]  # the view's own handler recolours
+            finally:
+                self.switching = False
         elif colour.value == "component":
             viewer.recolour()
         # last: once the message shows, the colours it speaks of are drawn
