@@ -92,3 +92,20 @@ def test_a_component_is_shown_apart_and_carried_along_with_a_dragged_scan(viewer
     for k, lift in ((0, 0.0), (1, 1.5), (2, 1.5)):  # scan 2 came along with scan 1, scan 0 stayed
         np.testing.assert_allclose(after[k][:3, 3] - before[k][:3, 3], [0.0, 0.0, lift], atol=1e-9)
     assert "with 1 scan(s) of its component" in edit.result.content
+
+
+def test_a_failed_run_with_pieces_turns_the_component_colours_on_with_its_reason(viewer):
+    workbench = viewer.workbench
+    poses = workbench.current_poses("corridor")
+    poses[2] = poses[2].copy()
+    poses[2][0, 3] += 1000.0  # the run lost scan 2: it sits 1 km off, overlapping nothing
+    failure = {"stage": "relaxation", "reason": "the pose graph is disconnected", "error": "DisconnectedGraphError"}
+    workbench.commit("corridor", poses, "ana", "register", {"failure": failure, "components": [[0, 1], [2]]})
+    pieces = panel(viewer, "ComponentsPanel")
+    pieces.refresh()  # lum (the default): computed because the revision comes from a failed run
+    assert viewer.component_of == {0: 0, 1: 0, 2: 1}
+    assert viewer.controls.colour.value == "component"
+    assert pieces.message.content.startswith(
+        "**⚠ the relaxation stage failed (revision 1): the pose graph is disconnected. "
+        "lum relaxation would find the graph disconnected: 2 components [0-1]; [2]"
+    )
