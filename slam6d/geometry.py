@@ -8,6 +8,7 @@ Angles are radians unless a name says ``deg``.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -418,3 +419,10 @@ def uos_pose(translation_cm: Matrix, angles_deg: Matrix) -> Matrix:
     """Native 3DTK pose from a ``.pose`` file's two lines (cm, degrees, R = Rx·Ry·Rz)."""
     rx, ry, rz = np.radians(np.asarray(angles_deg, dtype=np.float64))
     return pose_from_euler(np.asarray(translation_cm, dtype=np.float64), rx, ry, rz)
+
+
+def path_lengths(poses: Sequence[Matrix]) -> NDArray[np.float64]:
+    """Cumulative distance travelled along the trajectory, one value per scan (0 at scan 0)."""
+    positions = np.array([p[:3, 3] for p in poses])
+    steps = np.linalg.norm(np.diff(positions, axis=0), axis=1)
+    return np.concatenate([[0.0], np.cumsum(steps)])
