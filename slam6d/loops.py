@@ -28,7 +28,6 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
@@ -47,9 +46,7 @@ from slam6d.geometry import (
 from slam6d.icp import ICPConfig, icp
 from slam6d.model import ModelIndex
 from slam6d.octree import Occupancy, Octree
-
-if TYPE_CHECKING:  # slam6d.relax imports this module (path_lengths): only the annotation needs it
-    from slam6d.relax import ScanModels
+from slam6d.relax import ScanModels
 
 FloatArray = NDArray[np.float64]
 
