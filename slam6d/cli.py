@@ -518,7 +518,7 @@ def relax(
     from slam6d.relaxation_methods import reduced_models, relax_poses
     from slam6d.residuals import displacements
     from slam6d.session import Session
-    from slam6d.session_graph import graph_edges
+    from slam6d.session_graph import graph_edges, sequential_links
 
     session = Session.open(session_dir)
     config = pipeline_config(session.config.engine)
@@ -537,6 +537,7 @@ def relax(
             held,
             config.relax,
             progress=lambda done, _residual, _moved: update(done, config.relax.max_rounds),
+            links=sequential_links(len(revision.poses), revision.graph),
         )
     typer.echo(
         f"{method}: {result.iterations} round(s), point-to-plane RMS {100 * result.residual_before:.2f} -> "

@@ -30,7 +30,8 @@ from slam6d.graph_relaxation import GraphEdge, graph_relaxation
 from slam6d.icp import FloatArray, ICPConfig
 from slam6d.lum import lum_relaxation
 from slam6d.octree import reduce_points
-from slam6d.relax import Progress, RelaxationConfig, RelaxationResult, ScanModels
+from slam6d.posegraph import connected_components
+from slam6d.relax import Progress, RelaxationConfig, RelaxationResult, ScanModels, neighbour_pairs
 from slam6d.simultaneous import simultaneous_matching
 
 if TYPE_CHECKING:
@@ -38,7 +39,7 @@ if TYPE_CHECKING:
 
 RELAXATION_METHODS = ("lum", "graph", "simultaneous")
 
-__all__ = ["RELAXATION_METHODS", "models_icp_config", "reduced_models", "relax_poses"]
+__all__ = ["RELAXATION_METHODS", "models_icp_config", "reduced_models", "relax_poses", "relaxation_components"]
 
 
 def models_icp_config(icp: ICPConfig, voxel_size: float) -> ICPConfig:
@@ -106,3 +107,32 @@ def relax_poses(
             edges = [e for e in edges if e.i in chosen and e.j in chosen]
         return graph_relaxation(models, current, edges, fixed, config, progress, cancel, edge_progress)
     raise Slam6dError(f"unknown relaxation '{method}'; known: {', '.join(RELAXATION_METHODS)}")
+
+
+def relaxation_components(
+    method: str,
+    models: ScanModels | None,
+    poses: Sequence[Matrix],
+    edges: Sequence[GraphEdge] = (),
+    config: RelaxationConfig = RelaxationConfig(),
+    links: Iterable[tuple[int, int]] = (),
+) -> list[list[int]]:
+    """The connected components of the graph ``method`` would relax over at ``poses`` (scans sorted,
+    components ordered by their first scan; one component when relaxation can tie every scan together).
+
+    ``graph`` relaxes over ``edges``; ``lum`` and ``simultaneous`` over the overlapping pairs they
+    find at the current poses (:func:`slam6d.relax.neighbour_pairs` with the relaxation's own
+    criterion and bound) plus ``links``. These are the components a relaxation refuses (or relaxes
+    one by one in ``slam6d run``), so an operator can see before relaxing which pieces need a bridge.
+    ``models`` may be None for ``graph``, which needs no scan (a caller spares building them).
+    """
+    if method == "graph":
+        pairs = [(e.i, e.j) for e in edges]
+    elif method in ("lum", "simultaneous"):
+        if models is None:
+            raise Slam6dError(f"{method} finds its graph from the scans: their models are needed")
+        found = neighbour_pairs(models, poses, config.min_pairs, links=links, per_scan=config.neighbours_per_scan)
+        pairs = [(p.i, p.j) for p in found]
+    else:
+        raise Slam6dError(f"unknown relaxation '{method}'; known: {', '.join(RELAXATION_METHODS)}")
+    return connected_components(len(poses), pairs)

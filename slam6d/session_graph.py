@@ -44,6 +44,15 @@ def graph_edge_list(count: int, graph: GraphDocument) -> list[dict[str, Any]]:
     return [{"k": k, **e} for k, e in enumerate(edges)]
 
 
+def sequential_links(count: int, graph: GraphDocument) -> list[tuple[int, int]]:
+    """The consecutive pairs a revision keeps (its sequential edges not removed by hand).
+
+    ``lum`` and ``simultaneous`` take them as ``links``: a pair registered one onto the other stays a
+    neighbour however little it overlaps, as in ``slam6d run``; a removed one counts only by overlap.
+    """
+    return [(e["i"], e["j"]) for e in graph_edge_list(count, graph) if e["kind"] == "sequential"]
+
+
 def with_loop(graph: GraphDocument, edge: dict[str, Any]) -> GraphDocument:
     """``graph`` with ``edge`` as its loop between those scans (replacing one there, undoing a removal or rejection)."""
     key = edge_key(edge["i"], edge["j"])

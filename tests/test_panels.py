@@ -64,3 +64,48 @@ def test_gizmo_move_and_displacement_colours(viewer):
     assert set(viewer.highlight) == {0, 1, 2}
     assert viewer.highlight[1] != viewer.highlight[0]  # the moved scan is coloured apart
     assert "1.50 m" in loops.legend.content
+
+
+def test_a_component_is_shown_apart_and_carried_along_with_a_dragged_scan(viewer):
+    from app.editing import editor_for
+
+    edit, loops, pieces = panel(viewer, "EdgesPanel"), panel(viewer, "LoopsPanel"), panel(viewer, "ComponentsPanel")
+    pieces.refresh()  # lum (the default) finds its graph from the scans: only when asked or after a failed run
+    assert viewer.component_of == {} and "Choose *Colour by* `component`" in pieces.message.content
+    editor_for(viewer.workbench).edges.delete("corridor", 0, "ana")  # the edge 0-1: pieces [0] and [1, 2]
+    loops.method.value = "graph"  # the components of the graph that graph relaxation would use
+    pieces.refresh()
+    assert viewer.component_of == {0: 0, 1: 1, 2: 1}
+    assert "2 components [0]; [1-2]" in pieces.message.content
+    assert viewer.controls.colour.value == "component"
+    assert viewer.scan_colours(1) == viewer.scan_colours(2) != viewer.scan_colours(0)
+
+    before = viewer.state.session.poses()
+    edit.scan_a.value = 1
+    edit.carry.value = True
+    edit.drag.value = True
+    edit._toggle_gizmo()
+    edit.gizmo.position = np.asarray(edit.gizmo.position) + np.array([0.0, 0.0, 1.5])
+    edit._move(Click(), refine=False)
+    after = viewer.state.session.poses()
+    assert viewer.state.session.journal.entries()[-1].parameters["carry"] == [2]
+    for k, lift in ((0, 0.0), (1, 1.5), (2, 1.5)):  # scan 2 came along with scan 1, scan 0 stayed
+        np.testing.assert_allclose(after[k][:3, 3] - before[k][:3, 3], [0.0, 0.0, lift], atol=1e-9)
+    assert "with 1 scan(s) of its component" in edit.result.content
+
+
+def test_a_failed_run_with_pieces_turns_the_component_colours_on_with_its_reason(viewer):
+    workbench = viewer.workbench
+    poses = workbench.current_poses("corridor")
+    poses[2] = poses[2].copy()
+    poses[2][0, 3] += 1000.0  # the run lost scan 2: it sits 1 km off, overlapping nothing
+    failure = {"stage": "relaxation", "reason": "the pose graph is disconnected", "error": "DisconnectedGraphError"}
+    workbench.commit("corridor", poses, "ana", "register", {"failure": failure, "components": [[0, 1], [2]]})
+    pieces = panel(viewer, "ComponentsPanel")
+    pieces.refresh()  # lum (the default): computed because the revision comes from a failed run
+    assert viewer.component_of == {0: 0, 1: 0, 2: 1}
+    assert viewer.controls.colour.value == "component"
+    assert pieces.message.content.startswith(
+        "**⚠ the relaxation stage failed (revision 1): the pose graph is disconnected. "
+        "lum relaxation would find the graph disconnected: 2 components [0-1]; [2]"
+    )

@@ -35,6 +35,11 @@ def test_a_disconnected_registration_becomes_a_revision_with_its_components(tmp_
         assert job.result["failure"]["stage"] == "relaxation"
         entry = next(e for e in client.get("/api/sessions/apart/journal").json() if e["kind"] == "register")
         assert entry["author"] == "ana" and entry["parameters"]["components"] == [[0, 1, 2, 3], [4, 5, 6, 7]]
+        # the view's guardrail over REST: the pieces lum would relax now, and the failure they came from
+        pieces = client.get("/api/sessions/apart/components", params={"method": "lum"}).json()
+        assert pieces["components"] == [[0, 1, 2, 3], [4, 5, 6, 7]] and pieces["ranges"] == "[0-3]; [4-7]"
+        assert pieces["failure"]["stage"] == "relaxation" and pieces["failure"]["revision"] == 1
+        assert pieces["message"].startswith("the relaxation stage failed (revision 1): ")
         rows = np.array(
             [
                 [float(v) for v in line.split()]

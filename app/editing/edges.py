@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -70,22 +71,34 @@ class GraphEdits:
         revision = context.commit_graph(session_id, remove, author, "delete_edge", params)
         return {"revision": revision, "deleted": {key: edge[key] for key in ("i", "j", "kind")}}
 
-    def move_scan(self, session_id: str, k: int, pose: Matrix, author: str, refine: bool = False) -> dict[str, Any]:
-        """Place scan k (a drag of the gizmo); with ``refine`` ICP continues from there against its neighbours."""
+    def move_scan(
+        self, session_id: str, k: int, pose: Matrix, author: str, refine: bool = False, carry: Sequence[int] = ()
+    ) -> dict[str, Any]:
+        """Place scan k (a drag of the gizmo); with ``refine`` ICP continues from there against its neighbours.
+
+        ``carry`` scans move rigidly with scan k (its connected component, when the operator brings a
+        piece that sits far off next to the rest to bridge them): they keep their poses relative to
+        scan k, and ICP matches scan k only against graph neighbours outside them, since the carried
+        ones move along and cannot tell where the piece belongs."""
         context = self.context
-        context.check_scan(session_id, k)
+        context.check_scan(session_id, k, *carry)
         pose = np.asarray(pose, dtype=np.float64)
         if pose.shape != (4, 4) or not np.isfinite(pose).all():
             raise EditError("pose must be a finite 4x4 matrix", 422)
+        carried = sorted(set(carry) - {k})
         head = context.workbench.head(session_id)
         poses = list(head.poses)
         params: dict[str, Any] = {"scan": k, "pose": pose, "refine": refine}
+        if carried:
+            params["carry"] = carried
         if refine:
             neighbours = sorted(
                 {e["j"] if e["i"] == k else e["i"] for e in context.edges(session_id) if k in (e["i"], e["j"])}
+                - set(carried)
             )
             if not neighbours:
-                raise EditError(f"scan {k} has no edges to refine against")
+                moved_along = " outside the scans carried along" if carried else ""
+                raise EditError(f"scan {k} has no edges{moved_along} to refine against")
             models = context.models(session_id)
             try:
                 result = icp(UnionIndex(models, neighbours, poses), models.points[k], pose, models.config)
@@ -93,6 +106,9 @@ class GraphEdits:
                 raise EditError(f"ICP from the new place failed: {exc}", 422) from None
             pose = result.transform
             params.update(neighbours=neighbours, fitness=result.fitness, rms=result.rms)
+        along = pose @ invert(poses[k])  # the move scan k makes, applied to the carried scans too
+        for c in carried:
+            poses[c] = along @ poses[c]
         poses[k] = pose
         kind = "icp_move" if refine else "manual_move"
         return context.commit_checked(session_id, poses, author, kind, params, base=head.number)

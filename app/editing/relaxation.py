@@ -22,7 +22,7 @@ from slam6d.loops import LoopHypothesis, diffuse_loop_correction, loop_correctio
 from slam6d.posegraph import check_connected
 from slam6d.relaxation_methods import RELAXATION_METHODS, relax_poses
 from slam6d.residuals import displacements
-from slam6d.session_graph import graph_edges
+from slam6d.session_graph import graph_edges, sequential_links
 
 
 class Relaxation:
@@ -85,6 +85,7 @@ class Relaxation:
                 progress=lambda done, _residual, _moved: progress(f"{method}: rounds", done, config.max_rounds),
                 cancel=cancel,
                 edge_progress=lambda done, total: progress(f"{method}: matching edges", done, total),
+                links=sequential_links(len(poses), revision.graph),
             )
             # held scans are no part of the change: someone may move them meanwhile without a conflict
             relaxed = [poses[k] if k in fixed else pose for k, pose in enumerate(result.poses)]

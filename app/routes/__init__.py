@@ -10,6 +10,7 @@ module              resource
 ``loops``           loop hypotheses: detect, accept, reject; loop closing
 ``edges``           the pose graph by hand: edges, moving a scan
 ``relaxation``      relaxation jobs, residuals, displacement between revisions
+``components``      the connected components a relaxation would see, the last failed run
 ``guesses``         octree guesses and ICP from a candidate
 ``traces``          stored traces of registration runs
 ``camera_path``     fly-through keyframes, render jobs, rendered videos
@@ -30,6 +31,7 @@ from app.routes import (
     bundles,
     camera_path,
     comments,
+    components,
     edges,
     exports,
     guesses,
@@ -48,6 +50,7 @@ API_ROUTERS: tuple[APIRouter, ...] = (
     loops.router,
     edges.router,
     relaxation.router,
+    components.router,
     guesses.router,
     traces.router,
     camera_path.router,

@@ -26,6 +26,12 @@ class EdgeRequest(RequestBody):
 class PoseRequest(RequestBody):
     pose: RigidPose = Field(description="4x4 world_from_scan, canonical frame (metres, z up)")
     refine: bool = Field(False, description="run ICP from this pose against the scan's graph neighbours")
+    carry: list[Index] = Field(
+        default_factory=list,
+        max_length=100_000,
+        description="scans moved rigidly with this one (e.g. its connected component, to bridge it to the rest); "
+        "ICP then matches only against graph neighbours outside them",
+    )
 
 
 @router.get("/edges")
@@ -50,5 +56,6 @@ def delete_edge(session_id: str, k: IndexPath, editor: EditorDep, author: Author
 def move_scan(
     session_id: str, k: IndexPath, body: PoseRequest, editor: EditorDep, author: Author = "anonymous"
 ) -> dict[str, Any]:
-    """Place a scan by hand (optionally ICP from there); answers the residuals before/after and any warning."""
-    return editor.edges.move_scan(session_id, k, body.pose, author, body.refine)  # type: ignore[arg-type]
+    """Place a scan by hand (optionally ICP from there, optionally carrying other scans along); answers the
+    residuals before/after and any warning."""
+    return editor.edges.move_scan(session_id, k, body.pose, author, body.refine, body.carry)  # type: ignore[arg-type]

@@ -1,4 +1,4 @@
-"""Colouring the scans: by scan, height or residual, with scans picked for editing and highlighted pairs on top.
+"""Colouring the scans: by scan, height, residual or connected component, with scans picked for editing and highlighted pairs on top.
 
 A single colour goes to the browser as one RGB triple, not one per point; only scans whose colour
 changes are resent.
@@ -16,11 +16,13 @@ from app.view.playback import light_colours
 class Colouring(ViewCore):
     highlight: dict[int, Colour]  # scans a panel marks (the pair being matched, displacement colours)
     selected: dict[int, Colour]  # scans picked for editing; drawn over highlight
+    component_of: dict[int, int]  # scan -> connected component (app.view.panels.components fills it)
 
     def init_colouring(self) -> None:
         self.residuals = None
         self.highlight = {}
         self.selected = {}
+        self.component_of = {}
         self.height_range = (0.0, 1.0)
 
     def scan_colours(self, k: int) -> np.ndarray | tuple[int, int, int]:
@@ -34,6 +36,8 @@ class Colouring(ViewCore):
             return display.ramp(display.world_heights(self.local[k], self.poses[k]), low, high)
         if mode == "residual" and self.residuals is not None:
             return display.ramp(self.residuals[k], 0.0, 0.3)
+        if mode == "component":
+            return display.scan_color(self.component_of.get(k, 0))
         return display.scan_color(k)
 
     def recolour(self) -> None:

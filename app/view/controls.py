@@ -11,7 +11,7 @@ import viser
 
 from app.view import display
 
-COLOUR_MODES = ("scan", "height", "residual")
+COLOUR_MODES = ("scan", "height", "residual", "component")  # component: app.view.panels.components
 
 
 class ViewControls:

@@ -18,12 +18,15 @@ class Panel(Protocol):
 
 
 def build_panels(viewer: ViewerHost) -> list[Panel]:
+    from app.view.panels.components import ComponentsPanel
     from app.view.panels.edges import EdgesPanel
     from app.view.panels.guesses import GuessPanel
     from app.view.panels.loops import LoopsPanel
     from app.view.panels.replay import ReplayPanel
 
-    panels: list[Panel] = [LoopsPanel(viewer), EdgesPanel(viewer), GuessPanel(viewer), ReplayPanel(viewer)]
+    loops = LoopsPanel(viewer)
+    panels: list[Panel] = [loops, EdgesPanel(viewer), GuessPanel(viewer), ReplayPanel(viewer)]
+    panels.append(ComponentsPanel(viewer, loops.method))  # the pieces the chosen relaxation would see
 
     def first_fill() -> None:  # lists need the scans' poses, which load in the background
         viewer.ready.wait()

@@ -33,6 +33,8 @@ class EdgesPanel:
             self.edge = gui.add_dropdown("Edge", [_NONE])
             self.delete = gui.add_button("Delete edge")
             self.drag = gui.add_checkbox("Drag scan A (gizmo)", False)
+            # bridging: a component that sits far off comes along with its scan A (see the Components folder)
+            self.carry = gui.add_checkbox("Carry A's component along", False)
             self.commit_move = gui.add_button("Keep dragged pose", disabled=True)
             self.icp_here = gui.add_button("ICP from here", disabled=True)
             self.result = gui.add_markdown("")
@@ -112,9 +114,22 @@ class EdgesPanel:
         )
 
         @self.gizmo.on_update
-        def _(_: Any) -> None:  # the scan follows the gizmo (pose-only update)
+        def _(_: Any) -> None:  # the scan (and what it carries) follows the gizmo (pose-only update)
             moved = self._gizmo_pose()
-            viewer.set_poses([moved] * (k + 1), [k])
+            shown = list(viewer.state.session.poses())  # a copy: the revision's own list stays as stored
+            along = moved @ np.linalg.inv(shown[k])
+            carried = self._carried(k)
+            for c in carried:
+                shown[c] = along @ shown[c]
+            shown[k] = moved
+            viewer.set_poses(shown, [k, *carried])
+
+    def _carried(self, k: int) -> list[int]:
+        """The other scans of scan k's connected component when *Carry A's component along* is on."""
+        if not self.carry.value:
+            return []
+        piece = self.viewer.component_of.get(k)
+        return sorted(s for s, c in self.viewer.component_of.items() if c == piece and s != k)
 
     def _gizmo_pose(self) -> np.ndarray:
         return make_pose(quaternion_to_rotation(np.asarray(self.gizmo.wxyz)), np.asarray(self.gizmo.position))
@@ -123,10 +138,14 @@ class EdgesPanel:
         if self.gizmo is None:
             raise ValueError("turn on 'Drag scan A' first")
         k = int(self.scan_a.value)
-        out = self.editor.edges.move_scan(self.session_id, k, self._gizmo_pose(), self.viewer.author(event), refine)
+        carried = self._carried(k)
+        out = self.editor.edges.move_scan(
+            self.session_id, k, self._gizmo_pose(), self.viewer.author(event), refine, carried
+        )
         self.drag.value = False  # type: ignore[misc]
+        along = f" with {len(carried)} scan(s) of its component" if carried else ""
         self.result.content = (
-            f"scan {k} {'matched from the dragged place' if refine else 'moved'}: residual RMS "
+            f"scan {k}{along} {'matched from the dragged place' if refine else 'moved'}: residual RMS "
             f"{out['residual_before']['rms']:.3f} → {out['residual_after']['rms']:.3f} m, revision {out['revision']}"
         )
         self.viewer.warn(out["warning"] or "")

@@ -33,6 +33,7 @@ class ViewerHost(Protocol):
     local: list[np.ndarray]  # display points per scan, scanner frame
     nodes: list[Any]  # the scans' point-cloud handles
     highlight: dict[int, tuple[int, int, int]]
+    component_of: dict[int, int]  # scan -> its connected component, for the "component" colouring
     controls: ViewControls  # the view's own folders: the ICP plot, play/pause, the stepping status
 
     def author(self, event: Any) -> str: ...
