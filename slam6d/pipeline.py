@@ -514,7 +514,7 @@ class Pipeline:
         if self._search_first(index):
             guess = self._guess(index, start)
             start, source = guess.transform, "octree"
-        bar = self.fitness_bar(index)
+        bar = self.summaries[index].fitness_bar = self.fitness_bar(index)
         model, world_from_model, members = self._model(index)
         yield ScanStarted(index, start.copy(), guess, members, source)
         outcome = yield from self._run_icp(index, model, world_from_model, start)
