@@ -8,7 +8,6 @@ Angles are radians unless a name says ``deg``.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -164,13 +163,6 @@ def interpolate_pose(start: Matrix, end: Matrix, fraction: float) -> Matrix:
     q = slerp(rotation_to_quaternion(start[:3, :3]), rotation_to_quaternion(end[:3, :3]), fraction)
     t = (1.0 - fraction) * start[:3, 3] + fraction * end[:3, 3]
     return make_pose(quaternion_to_rotation(q), t)
-
-
-def path_lengths(poses: Sequence[Matrix]) -> Matrix:
-    """Cumulative distance travelled along the trajectory, one value per scan (0 at scan 0)."""
-    positions = np.array([p[:3, 3] for p in poses])
-    steps = np.linalg.norm(np.diff(positions, axis=0), axis=1)
-    return np.concatenate([[0.0], np.cumsum(steps)])
 
 
 def rotation_angle(rotation: Matrix) -> float:

@@ -37,7 +37,6 @@ from slam6d.geometry import (
     Matrix,
     invert,
     make_pose,
-    path_lengths,
     quaternion_to_rotation,
     rotation_to_quaternion,
     slerp,
@@ -95,6 +94,13 @@ class LoopConfig:
     consistency: float = 0.1  # metres; 0 skips the restarted ICPs
     candidates_per_scan: int = 1
     closing_gap: int = 5  # scans between two loop closings (a revisited stretch gives many loops at once)
+
+
+def path_lengths(poses: Sequence[Matrix]) -> FloatArray:
+    """Cumulative distance travelled along the trajectory, one value per scan (0 at scan 0)."""
+    positions = np.array([p[:3, 3] for p in poses])
+    steps = np.linalg.norm(np.diff(positions, axis=0), axis=1)
+    return np.concatenate([[0.0], np.cumsum(steps)])
 
 
 def find_loop_hypotheses(

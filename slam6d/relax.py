@@ -30,8 +30,9 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from slam6d.errors import Cancelled, RelaxationError
-from slam6d.geometry import Matrix, invert, path_lengths
+from slam6d.geometry import Matrix, invert
 from slam6d.icp import ICPConfig
+from slam6d.loops import path_lengths
 from slam6d.model import ModelIndex
 from slam6d.posegraph import check_connected
 
