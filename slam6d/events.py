@@ -93,6 +93,7 @@ class ScanSummary:
     icp_iterations: int = 0
     rms: float = float("nan")
     fitness: float = float("nan")
+    fitness_bar: float = float("nan")  # under it the fit counted as poor and the searches ran (Pipeline.fitness_bar)
     converged: bool = False
     octree_guess: bool = False
     seconds: float = 0.0

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numba
 import numpy as np
@@ -152,6 +153,45 @@ def _closest_per_cell(points: FloatArray, lower: FloatArray, voxel_size: float, 
     return keep
 
 
+TILE_BITS = 2  # a tile is 4 x 4 x 4 cubes, one bit each in a 64-bit mask
+
+
+@numba.njit(cache=True, nogil=True)
+def _build_tiles(keys: IntArray, size: np.int64) -> tuple[IntArray, NDArray[np.uint64]]:
+    """Hash map from a tile (the packed key of a cube's cell coordinates shifted right by
+    ``TILE_BITS``) to the bit mask of the occupied cubes among its 4 x 4 x 4."""
+    table = np.full(size, -1, dtype=np.int64)
+    masks = np.zeros(size, dtype=np.uint64)
+    mask = size - 1
+    axis_mask = np.int64(CELLS_PER_AXIS - 1)
+    low = np.int64((1 << TILE_BITS) - 1)
+    for key in keys:
+        i = (key >> (2 * BITS_PER_AXIS)) & axis_mask
+        j = (key >> BITS_PER_AXIS) & axis_mask
+        k = key & axis_mask
+        tile = ((i >> TILE_BITS) << (2 * BITS_PER_AXIS)) | ((j >> TILE_BITS) << BITS_PER_AXIS) | (k >> TILE_BITS)
+        bit = ((i & low) << (2 * TILE_BITS)) | ((j & low) << TILE_BITS) | (k & low)
+        slot = _slot(tile, mask)
+        while table[slot] != -1 and table[slot] != tile:
+            slot = (slot + 1) & mask
+        table[slot] = tile
+        masks[slot] |= np.uint64(1) << np.uint64(bit)
+    return table, masks
+
+
+@numba.njit(cache=True, inline="always")
+def _tile_mask(table: IntArray, masks: NDArray[np.uint64], tile: np.int64) -> np.uint64:
+    mask = np.int64(len(table) - 1)
+    slot = _slot(tile, mask)
+    while True:
+        entry = table[slot]
+        if entry == tile:
+            return masks[slot]
+        if entry == -1:
+            return np.uint64(0)
+        slot = (slot + 1) & mask
+
+
 @numba.njit(cache=True, parallel=True, nogil=True)
 def _count_hits(
     points: FloatArray,
@@ -161,16 +201,33 @@ def _count_hits(
     cube_size: float,
     shifts: NDArray[np.int64],
     table: NDArray[np.int64],
+    masks: NDArray[np.uint64],
 ) -> NDArray[np.int32]:
-    """scores[r, s] = how many ``R_r (p - pivot) + pivot`` shifted by ``shifts[s]`` cubes are occupied."""
+    """scores[r, s] = how many ``R_r (p - pivot) + pivot`` shifted by ``shifts[s]`` cubes are occupied.
+
+    Per point, the tiles that the box around all its shifted cells touches are read once into a
+    small local array (at most 2 x 2 x 2 for shifts spanning up to 5 cubes per axis); each shift is
+    then a bit test in it rather than a hash lookup.
+    """
     n_rot = rotations.shape[0]
     n_shift = shifts.shape[0]
     scores = np.zeros((n_rot, n_shift), dtype=np.int32)
     inverse = 1.0 / cube_size
     limit = CELLS_PER_AXIS
+    tile_limit = CELLS_PER_AXIS >> TILE_BITS
+    low = np.int64((1 << TILE_BITS) - 1)
+    lo = np.empty(3, dtype=np.int64)
+    hi = np.empty(3, dtype=np.int64)
+    for axis in range(3):
+        lo[axis] = shifts[:, axis].min()
+        hi[axis] = shifts[:, axis].max()
+    nx = ((hi[0] - lo[0]) >> TILE_BITS) + 2
+    ny = ((hi[1] - lo[1]) >> TILE_BITS) + 2
+    nz = ((hi[2] - lo[2]) >> TILE_BITS) + 2
     for r in numba.prange(n_rot):
         rot = rotations[r]
         row = np.zeros(n_shift, dtype=np.int32)
+        local = np.zeros((nx, ny, nz), dtype=np.uint64)
         for p in range(points.shape[0]):
             x = points[p, 0] - pivot[0]
             y = points[p, 1] - pivot[1]
@@ -178,13 +235,34 @@ def _count_hits(
             cx = np.int64(np.floor((rot[0, 0] * x + rot[0, 1] * y + rot[0, 2] * z + pivot[0] - origin[0]) * inverse))
             cy = np.int64(np.floor((rot[1, 0] * x + rot[1, 1] * y + rot[1, 2] * z + pivot[1] - origin[1]) * inverse))
             cz = np.int64(np.floor((rot[2, 0] * x + rot[2, 1] * y + rot[2, 2] * z + pivot[2] - origin[2]) * inverse))
+            # tiles of the box of shifted cells (arithmetic shifts floor negative cells too)
+            tx0 = (cx + lo[0]) >> TILE_BITS
+            ty0 = (cy + lo[1]) >> TILE_BITS
+            tz0 = (cz + lo[2]) >> TILE_BITS
+            tx1 = (cx + hi[0]) >> TILE_BITS
+            ty1 = (cy + hi[1]) >> TILE_BITS
+            tz1 = (cz + hi[2]) >> TILE_BITS
+            found = False
+            for a in range(tx1 - tx0 + 1):
+                for b in range(ty1 - ty0 + 1):
+                    for c in range(tz1 - tz0 + 1):
+                        ti, tj, tk = tx0 + a, ty0 + b, tz0 + c
+                        value = np.uint64(0)
+                        if 0 <= ti < tile_limit and 0 <= tj < tile_limit and 0 <= tk < tile_limit:
+                            value = _tile_mask(table, masks, (ti << (2 * BITS_PER_AXIS)) | (tj << BITS_PER_AXIS) | tk)
+                        local[a, b, c] = value
+                        found = found or value != 0
+            if not found:
+                continue
             for s in range(n_shift):
                 i = cx + shifts[s, 0]
                 j = cy + shifts[s, 1]
                 k = cz + shifts[s, 2]
                 if i < 0 or j < 0 or k < 0 or i >= limit or j >= limit or k >= limit:
                     continue
-                if contains_key(table, (i << (2 * BITS_PER_AXIS)) | (j << BITS_PER_AXIS) | k):
+                bits = local[(i >> TILE_BITS) - tx0, (j >> TILE_BITS) - ty0, (k >> TILE_BITS) - tz0]
+                bit = ((i & low) << (2 * TILE_BITS)) | ((j & low) << TILE_BITS) | (k & low)
+                if (bits >> np.uint64(bit)) & np.uint64(1):
                     row[s] += 1
         scores[r] = row
     return scores
@@ -279,9 +357,11 @@ class Occupancy:
         """``hits[r, s]``: how many of ``R_r (p - pivot) + pivot``, moved by ``shifts[s]`` whole cubes, are occupied.
 
         The scoring core of the octree search. A shift of whole cubes moves a point's cell by exactly
-        that many cells, so each rotated point is discretised once and every shift costs one integer
-        add and one hash lookup.
+        that many cells, so each rotated point is discretised once; its shifts read the few tiles
+        (:attr:`tile_masks`) around it once and test a bit each. A hash lookup per (point, shift)
+        cost ~25 ns and made up 80 % of a search on a 100k-point street pair.
         """
+        table, masks = self.tile_masks
         return _count_hits(
             np.ascontiguousarray(points, dtype=np.float64),
             np.ascontiguousarray(rotations, dtype=np.float64).reshape(-1, 3, 3),
@@ -289,8 +369,15 @@ class Occupancy:
             self.origin,
             float(self.cube_size),
             np.ascontiguousarray(shifts, dtype=np.int64).reshape(-1, 3),
-            self.key_set.table,
+            table,
+            masks,
         )
+
+    @cached_property
+    def tile_masks(self) -> tuple[IntArray, NDArray[np.uint64]]:
+        """The occupied cubes as 4 x 4 x 4 tiles with a 64-bit mask each (built on first use): the
+        search's shifts around a point then cost a bit test each rather than a hash lookup."""
+        return _build_tiles(self.keys, np.int64(_table_size(len(self.keys))))
 
 
 def _occupancy_from_keys(cube_size: float, origin: FloatArray, keys: IntArray, counts: IntArray) -> Occupancy:
