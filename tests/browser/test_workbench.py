@@ -14,7 +14,7 @@ pytestmark = pytest.mark.browser
 
 
 def open_session(page, server, session_id: str, timeout: float = 60_000) -> None:  # type: ignore[no-untyped-def]
-    page.goto(f"{server.url}/sessions/{session_id}")
+    page.goto(f"{server.url}/sessions/{session_id}", timeout=timeout)  # the first page of a run starts cold
     viewer_frame(page).get_by_text("points shown").wait_for(timeout=timeout)
 
 
