@@ -16,6 +16,7 @@ from importlib.resources import files
 from pathlib import Path
 from typing import Any
 
+from anyio import open_file  # noqa: F401 - see the note below
 from fastapi import Depends, FastAPI
 from fastapi.responses import FileResponse, RedirectResponse
 from fastapi.staticfiles import StaticFiles
@@ -43,6 +44,12 @@ from slam6d.errors import Slam6dError
 from slam6d.journal import Journal
 
 UPLOAD_PATHS = ("/api/sessions/upload", "/api/sessions/import")  # multipart: streamed, bounded by the upload limit
+
+
+# anyio imports its file module lazily, on the first FileResponse. Done then, in a worker thread
+# while other threads compile code, CPython 3.11 can fail the import ("AST constructor recursion
+# depth mismatch") and the first page of a fresh process answered 500; importing it here, once,
+# on the main thread avoids that.
 
 
 def static_dir() -> Path:
