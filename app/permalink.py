@@ -158,6 +158,7 @@ def resolve_link(state: SessionState, editor: Editor, link: Permalink) -> dict[s
 def describe_selection(state: SessionState, editor: Editor, selection: Selection, revision: int) -> dict[str, Any]:
     """What the page's selection panel shows of a selected item at ``revision``; LinkError when it is not there."""
     session = state.session
+    state.sequence()  # a new session's revision 0 is made by its first load (once, under the state's lock)
     poses = session.poses(revision)
     count = len(poses)
     described: dict[str, Any] = {"kind": selection.kind, "text": selection.text(), "i": selection.i, "j": selection.j}

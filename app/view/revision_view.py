@@ -72,7 +72,8 @@ class RevisionView:
         self.server.scene.configure_default_lights(cast_shadow=False)
         self.server.gui.configure_theme(dark_mode=True, control_width="large")
         self.server.gui.add_markdown(
-            f"**{state.session.name} · revision {revision}** (read-only): the map as it was then. "
+            f"**{state.session.name} · revision {revision}** (read-only) · {len(self.local)} scans · "
+            f"{sum(len(p) for p in self.local):,} points shown: the map as it was then. "
             "The page's banner leads to the current revision."
         )
         positions = np.array([p[:3, 3] for p in self.poses]) if self.poses else np.zeros((1, 3))
