@@ -43,5 +43,16 @@ class DataRoot:
             raise SourceRefusedError(f"the source must lie inside the server's data root ({root.name}/)")
         return resolved
 
+    def locate(self, recorded: str) -> Path | None:
+        """Where a bundle's recorded scan source may be looked for here (``slam6d.bundle.SourceFinder``),
+        or None: a path inside the exporter's data root is taken inside this one, an absolute path only
+        where :meth:`check` allows it (anywhere on a loopback server without a data root)."""
+        if not Path(recorded).is_absolute() and self.folder is None:
+            return None  # relative to a data root this server does not have
+        try:
+            return self.check(recorded)
+        except SourceRefusedError:
+            return None
+
 
 __all__ = ["DataRoot", "SourceRefusedError"]

@@ -26,6 +26,11 @@ Then :func:`authorize`, a dependency of every route (it needs the route the requ
 
 The grant found is left in ``request.state.grant`` (the author's name, what the page may show)
 and the session acted on in ``request.state.session``. Secrets are never logged nor echoed.
+
+**One name per person.** ``grant.name`` is who acts, for the journal (the ``X-Author`` every route
+reads is rewritten from it), comments and presence alike: a token's holder is the token's name,
+whatever the page claims; on an open loopback server it is the name typed in the page header (sent
+as ``X-Author``, and as the ``slam6d-author`` cookie, which the 3D view's websocket carries too).
 """
 
 from __future__ import annotations
@@ -34,7 +39,7 @@ import ipaddress
 import json
 import socket
 from collections.abc import Awaitable, Callable, Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from http.cookies import SimpleCookie
 from typing import Any
 from urllib.parse import parse_qsl, urlsplit
@@ -48,6 +53,7 @@ from starlette.routing import BaseRoute
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from app.tokens import Grant, Role, TokenStore
+from app.view.names import AUTHOR_COOKIE, MAX_NAME, name_from_cookie
 
 TOKEN_COOKIE = "slam6d_token"
 ROLE_KEY = "x-role"
@@ -72,6 +78,36 @@ GUARD_RESPONSES: dict[int | str, dict[str, Any]] = {
     403: {"model": Refusal, "description": "the token's role or session does not allow this, or a cross-site request"},
     415: {"model": Refusal, "description": "a POST without a JSON (or, where taken, form) body"},
 }
+
+
+def is_open(grant: Grant) -> bool:
+    """Whether ``grant`` is the open loopback server's (named or not), not a token's."""
+    return grant.id == OPEN_GRANT.id
+
+
+def open_grant(name: str) -> Grant:
+    """The open server's grant under the name its user typed (presence and the journal show it)."""
+    return replace(OPEN_GRANT, name=name) if name else OPEN_GRANT
+
+
+def page_name(headers: Headers) -> str:
+    """The name typed in a page: its ``X-Author`` (REST calls, scripts) or else its name cookie (the
+    3D view's websocket, plain page loads); trimmed, at most :data:`app.view.names.MAX_NAME` characters."""
+    header = headers.get("x-author")
+    if header is not None and header.strip():
+        return header.strip()[:MAX_NAME]
+    return name_from_cookie(cookie_value(headers, AUTHOR_COOKIE))
+
+
+def cookie_value(headers: Headers, name: str) -> str | None:
+    """One cookie's value (None when absent, empty, or the Cookie header is malformed - never an error)."""
+    cookie = SimpleCookie()
+    try:
+        cookie.load(headers.get("cookie", ""))
+    except Exception:
+        return None
+    found = cookie.get(name)
+    return (found.value or None) if found is not None else None
 
 
 def requires(role: Role, any_session: bool = False) -> dict[str, Any]:
@@ -139,11 +175,13 @@ class RequestGuard:
         except GuardError as exc:
             await _refuse(scope, receive, send, exc)
             return
+        if is_open(grant):
+            grant = open_grant(page_name(headers))
         scope.setdefault("state", {})["grant"] = grant
-        if grant is not OPEN_GRANT:  # the journal names the token's holder, whatever the page claims
-            author = grant.name.encode("latin-1", "replace")
-            scope["headers"] = [(k, v) for k, v in scope["headers"] if k.lower() != b"x-author"]
-            scope["headers"].append((b"x-author", author))
+        # every route reads the author from X-Author: it is the grant's one name, whatever the page claims
+        scope["headers"] = [(k, v) for k, v in scope["headers"] if k.lower() != b"x-author"]
+        if grant.name:
+            scope["headers"].append((b"x-author", grant.name.encode("latin-1", "replace")))
         if from_query is None or scope["type"] != "http":
             await self.app(scope, receive, send)
             return
@@ -259,13 +297,7 @@ def token_of(scope: Scope, headers: Headers) -> tuple[str | None, bool]:
     query = dict(parse_qsl(scope.get("query_string", b"").decode("latin-1")))
     if query.get("token"):
         return query["token"], True
-    cookie = SimpleCookie()
-    try:
-        cookie.load(headers.get("cookie", ""))
-    except Exception:  # a malformed Cookie header is no token, not a server error
-        return None, False
-    found = cookie.get(TOKEN_COOKIE)
-    return (found.value or None, False) if found is not None else (None, False)
+    return cookie_value(headers, TOKEN_COOKIE), False
 
 
 async def _refuse(scope: Scope, receive: Receive, send: Send, error: GuardError) -> None:
@@ -299,6 +331,9 @@ __all__ = [
     "RequestGuard",
     "authorize",
     "is_loopback",
+    "is_open",
+    "open_grant",
+    "page_name",
     "requires",
     "server_names",
     "session_from_path",

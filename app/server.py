@@ -17,11 +17,12 @@ from pathlib import Path
 from typing import Any
 
 from anyio import open_file  # noqa: F401 - see the note below
-from fastapi import Depends, FastAPI
+from fastapi import Depends, FastAPI, Request
 from fastapi.responses import FileResponse, RedirectResponse
 from fastapi.staticfiles import StaticFiles
 
 from app.data_root import DataRoot
+from app.editing import editor_for
 from app.errors import UnknownSessionError
 from app.guard import (
     GUARD_RESPONSES,
@@ -33,9 +34,10 @@ from app.guard import (
     session_from_path,
 )
 from app.limits import RequestLimits
+from app.permalink import LINK_PARAMETERS, parse_link, resolve_link
 from app.revisions import REVISION_RESPONSES, RevisionHeaders, add_revision_errors, check_revision
 from app.routes import API_ROUTERS
-from app.routes.dependencies import REQUIRE_SESSION
+from app.routes.dependencies import SessionDep
 from app.routes.errors import document_errors, install_error_handlers
 from app.routes.sharing import build_sharing_router
 from app.tokens import TokenStore
@@ -117,9 +119,12 @@ def create_app(
 
         from app.routes import views
         from app.view.registry import ViewerRegistry
+        from app.view.revision_view import RevisionViews
 
         registry = ViewerRegistry(workbench)
         app.state.viewers = registry
+        app.state.revision_views = RevisionViews(workbench)  # older revisions opened from permalinks
+        app.state.on_shutdown.append(app.state.revision_views.stop_all)
         app.state.viser_client = httpx.AsyncClient(timeout=30)
         app.include_router(views.router)
         app.state.on_shutdown.append(registry.stop_all)
@@ -131,8 +136,11 @@ def create_app(
     def landing() -> FileResponse:
         return FileResponse(pages / "index.html")
 
-    @app.get("/sessions/{session_id}", include_in_schema=False, dependencies=[REQUIRE_SESSION])
-    def session_page(session_id: str) -> FileResponse:
+    @app.get("/sessions/{session_id}", include_in_schema=False)
+    def session_page(session_id: str, request: Request, state: SessionDep) -> FileResponse:
+        # a permalink's parameters are checked before the page is served (422 naming the parameter)
+        link = {k: v for k, v in request.query_params.items() if k in LINK_PARAMETERS}
+        resolve_link(state, editor_for(workbench), parse_link(link))
         if viewers:  # start reading scans while the browser still loads the page and the 3D client
             app.state.viewers.get(session_id)
         return FileResponse(pages / "session.html")

@@ -4,13 +4,17 @@ A bundle holds ``manifest.json`` (format, schema version, the sha256 and size of
 ``session.toml``, ``journal.sqlite`` (every entry and revision: edits, runs, undo/redo, camera
 paths, comments), ``camera_path.json`` (the current fly-through path, readable by ``slam6d render
 --path``), the session's traces and other files, and optionally the scans themselves under
-``sources/<k>/``. Without the scans, ``session.toml`` names the scan folders by absolute path,
-so the bundle opens where the same folders can be reached.
+``sources/<k>/``. Without the scans, the manifest records where each scan source was (its absolute
+path and, when the exporter names its data root, the path inside it) with the sha256 and size of
+every file in it: an importer finds the same files under its own data root (or, on the command
+line, where they were) and re-links the session to them after checking every hash, so a bundle of
+a large survey can be handed between machines that hold the same scans without copying them.
 
 Importing trusts nothing in the zip: it is unpacked by :mod:`slam6d.archive` (sizes, ratio, entry
 count, names, links and nested archives checked while streaming), then every file is checked
 against the manifest (no file missing, none extra, every hash equal), ``session.toml`` parsed,
-every scan source kept inside the bundle unless the caller allows outside folders, and the journal
+every scan source either inside the bundle or found outside it with every file's hash equal to
+the recorded one (:func:`locate_sources`), and the journal
 checked (:func:`slam6d.journal.check_journal_file`) - all in a staging folder; only a bundle that
 passed becomes a session folder, under a new name, so an import never overwrites anything.
 """
@@ -69,8 +73,15 @@ class BundleSummary:
 # ------------------------------------------------------------------ export
 
 
-def export_bundle(session: Session | Path | str, out: Path | str, include_scans: bool = False) -> BundleSummary:
-    """Write the session's bundle to ``out`` (atomically: a half-written zip never appears there)."""
+def export_bundle(
+    session: Session | Path | str, out: Path | str, include_scans: bool = False, data_root: Path | None = None
+) -> BundleSummary:
+    """Write the session's bundle to ``out`` (atomically: a half-written zip never appears there).
+
+    Without the scans, the manifest's ``sources`` record each scan source's files (sha256, size) and
+    its path - also relative to ``data_root`` when it lies inside, which is how a server with the
+    same data under another folder finds it.
+    """
     session = session if isinstance(session, Session) else Session.open(Path(session))
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -96,6 +107,7 @@ def export_bundle(session: Session | Path | str, out: Path | str, include_scans:
                         "revision": head,
                         "scans_included": include_scans,
                         "files": manifest,
+                        **({} if include_scans else {"sources": _source_records(session, data_root)}),
                     },
                     indent=1,
                 ),
@@ -160,16 +172,42 @@ def _session_files(session: Session) -> list[tuple[str, Path]]:
     return out
 
 
+def _files_of_source(source: Path) -> list[tuple[str, Path]]:
+    """A scan source's files by their path relative to the source (a single file: its name)."""
+    if source.is_dir():
+        return [(p.relative_to(source).as_posix(), p) for p in _regular_files(source)]
+    if source.is_file() and not source.is_symlink():
+        return [(source.name, source)]
+    raise BundleError(source, "scan source is not a regular file or folder; cannot bundle it")
+
+
 def _source_files(session: Session) -> list[tuple[str, Path]]:
-    out: list[tuple[str, Path]] = []
-    for k, source in enumerate(session.source_paths()):
-        if source.is_dir():
-            out.extend((f"{SOURCES_DIR}/{k}/{p.relative_to(source).as_posix()}", p) for p in _regular_files(source))
-        elif source.is_file() and not source.is_symlink():
-            out.append((f"{SOURCES_DIR}/{k}/{source.name}", source))
-        else:
-            raise BundleError(source, "scan source is not a regular file or folder; cannot bundle it")
-    return out
+    return [
+        (f"{SOURCES_DIR}/{k}/{name}", path)
+        for k, source in enumerate(session.source_paths())
+        for name, path in _files_of_source(source)
+    ]
+
+
+def _source_records(session: Session, data_root: Path | None) -> list[dict[str, Any]]:
+    """Where each scan source was and what it held: what an importer needs to find the same files."""
+    root = None if data_root is None else data_root.expanduser().resolve()
+    records = []
+    for source in session.source_paths():
+        resolved = source.resolve()
+        inside = root is not None and resolved.is_relative_to(root)
+        records.append(
+            {
+                "path": str(resolved),
+                "data_root_path": resolved.relative_to(root).as_posix() if inside and root is not None else None,
+                "kind": "folder" if source.is_dir() else "file",
+                "files": [
+                    {"path": name, "sha256": _sha256(path), "bytes": path.stat().st_size}
+                    for name, path in _files_of_source(source)
+                ],
+            }
+        )
+    return records
 
 
 def _sha256(path: Path) -> str:
@@ -187,15 +225,17 @@ def import_bundle(
     archive: Path | BinaryIO,
     sessions_dir: Path | str,
     limits: ArchiveLimits = ArchiveLimits(),
-    check_external_source: Callable[[Path], None] | None = None,
+    find_source: SourceFinder | None = None,
     author: str = "system",
     label: str | None = None,
 ) -> Session:
     """Make a new session in ``sessions_dir`` from a bundle; nothing is written unless it all checks out.
 
-    A bundle without its scans names folders outside itself: ``check_external_source(path)`` decides
-    whether such a folder may be used (raising to refuse it); without it they are refused, which is
-    what a server that must not open arbitrary folders wants. The import is journaled.
+    A bundle without its scans names folders outside itself: ``find_source(recorded)`` says where a
+    recorded source path (inside the exporter's data root, or absolute) may be looked for here, or
+    None where this importer must not look; without it such a bundle is refused, which is what a
+    server that must not open arbitrary folders wants. A source is re-linked only where every file
+    the manifest records is present with its sha256 (:func:`locate_sources`). The import is journaled.
     """
     sessions_dir = Path(sessions_dir)
     where = label or (str(archive) if isinstance(archive, Path) else "bundle")
@@ -207,8 +247,14 @@ def import_bundle(
         written = extract_zip(archive, content, limits, label=where)
         manifest = _check_manifest(content, written, where)
         config = read_config(content)
+        located: set[str] = set()
+        if manifest.get("scans_included", True) is False:
+            found = locate_sources(manifest.get("sources"), len(config.sources), find_source, where)
+            located = {str(path) for path in found}
+            config = replace(config, sources=tuple(str(path) for path in found))
+            write_config(content, config)
         for source in config.sources:
-            _check_source(content, source, check_external_source, where)
+            _check_source(content, source, located, where)
         problems = check_journal_file(content / JOURNAL_FILE)
         if problems:
             raise BundleError(where, f"{JOURNAL_FILE} is unusable: {'; '.join(problems[:3])}")
@@ -272,15 +318,106 @@ def _check_manifest(content: Path, written: list[PurePosixPath], where: str) -> 
     return manifest
 
 
-def _check_source(content: Path, source: str, check_external: Callable[[Path], None] | None, where: str) -> None:
-    path = Path(source)
-    if path.is_absolute():
-        if check_external is None:
-            raise BundleError(
-                where, f"scan source '{source}' lies outside the bundle; export the bundle with its scans"
-            )
-        check_external(path)
+def _check_source(content: Path, source: str, located: set[str], where: str) -> None:
+    """A scan source must be one of the bundle's own folders, or one :func:`locate_sources` found
+    outside it and checked file by file (a path the bundle merely names is never opened)."""
+    if source in located:
         return
     inside = safe_member_name(source)
     if inside is None or not (content / inside).exists():
         raise BundleError(where, f"scan source '{source}' is not in the bundle")
+
+
+SourceFinder = Callable[[str], Path | None]
+"""Where a recorded scan source may be looked for on this machine (None: nowhere it may look)."""
+
+
+def local_source_finder(data_root: Path | None) -> SourceFinder:
+    """What a person importing on their own machine may read: a path recorded inside the exporter's data
+    root is looked for inside ``data_root`` (never outside it), an absolute path where it is."""
+
+    def find(recorded: str) -> Path | None:
+        if Path(recorded).is_absolute():
+            return Path(recorded)
+        if data_root is None:
+            return None
+        root = data_root.expanduser().resolve()
+        inside = (root / recorded).resolve()
+        return inside if inside.is_relative_to(root) else None
+
+    return find
+
+
+def locate_sources(records: Any, count: int, find_source: SourceFinder | None, where: str) -> list[Path]:
+    """The local folder (or file) of each scan source a bundle without scans records.
+
+    Each source is looked for first under its path inside the exporter's data root, then under its
+    absolute path, each only where ``find_source`` allows; it is taken where every recorded file is
+    present with its size and sha256. Otherwise :class:`BundleError` names the source and what is
+    missing or different there (nothing is written).
+    """
+    if not isinstance(records, list) or len(records) != count:
+        raise BundleError(
+            where,
+            f"bundle was exported without its scans and {MANIFEST} does not record them; export it with its scans",
+        )
+    if find_source is None:
+        raise BundleError(
+            where, "the bundle's scans are not in it and this importer may not look for them; export it with its scans"
+        )
+    found = []
+    for k, record in enumerate(records):
+        files = _recorded_files(record, k, where)
+        problems: list[str] = []
+        recorded = [record.get(key) for key in ("data_root_path", "path")]
+        places = [p for p in recorded if isinstance(p, str) and p]
+        for place in places:
+            local = find_source(place)
+            if local is None:
+                continue
+            problem = _source_problem(local, record.get("kind") == "file", files)
+            if problem is None:
+                found.append(local)
+                break
+            problems.append(f"{place}: {problem}")
+        else:
+            tried = "; ".join(problems) if problems else f"none of {places} may be read here"
+            raise BundleError(
+                where, f"scan source {k} is not in the bundle and was not found ({tried}); nothing imported"
+            )
+    return found
+
+
+def _recorded_files(record: Any, k: int, where: str) -> dict[str, tuple[str, int]]:
+    items = record.get("files") if isinstance(record, dict) else None
+    if not isinstance(items, list) or not items:
+        raise BundleError(where, f"{MANIFEST}: sources[{k}] lists no files")
+    files: dict[str, tuple[str, int]] = {}
+    for item in items:
+        name = item.get("path") if isinstance(item, dict) else None
+        digest, size = (item.get("sha256"), item.get("bytes")) if isinstance(item, dict) else (None, None)
+        if not isinstance(name, str) or safe_member_name(name) is None or not isinstance(digest, str):
+            raise BundleError(where, f"{MANIFEST}: sources[{k}] has a file without a usable path or sha256")
+        if not isinstance(size, int) or isinstance(size, bool):
+            raise BundleError(where, f"{MANIFEST}: sources[{k}] file '{name}' needs its size in bytes")
+        files[name] = (digest.lower(), size)
+    return files
+
+
+def _source_problem(local: Path, single_file: bool, files: dict[str, tuple[str, int]]) -> str | None:
+    """What keeps ``local`` from being the recorded source (a missing or different file), or None."""
+    if single_file:
+        if not local.is_file():
+            return "no such file"
+        present = {local.name: local}
+    else:
+        if not local.is_dir():
+            return "no such folder"
+        present = {name: path for name, path in _files_of_source(local)}
+    missing = sorted(set(files) - set(present))
+    if missing:
+        return f"missing {', '.join(missing[:3])}" + (f" and {len(missing) - 3} more" if len(missing) > 3 else "")
+    for name, (digest, size) in sorted(files.items()):
+        if present[name].stat().st_size != size or _sha256(present[name]) != digest:
+            return f"'{name}' differs from the exported file (sha256)"
+    return None

@@ -562,11 +562,16 @@ def bundle_export(
     session: Annotated[Path, typer.Argument(help="Session folder (holding session.toml).")],
     out: Annotated[Path, typer.Argument(help="The zip to write.")],
     scans: Annotated[bool, typer.Option("--scans", help="Include the scan files themselves.")] = False,
+    data_root: Annotated[
+        Path | None,
+        typer.Option(help="Without --scans: also record the scans' place inside this folder (a server's data root)."),
+    ] = None,
 ) -> None:
-    """Write SESSION's bundle: manifest (sha256 per file), session.toml, journal, traces, camera path."""
+    """Write SESSION's bundle: manifest (sha256 per file), session.toml, journal, traces, camera path; the
+    scans themselves with --scans, otherwise where they are and each scan file's sha256."""
     from slam6d.bundle import export_bundle
 
-    summary = export_bundle(session, out, include_scans=scans)
+    summary = export_bundle(session, out, include_scans=scans, data_root=data_root)
     included = "with" if summary.scans_included else "without"
     typer.echo(f"{summary.path}: {summary.files} files, {summary.bytes:,} bytes, {included} scans")
 
@@ -575,15 +580,19 @@ def bundle_export(
 def bundle_import(
     bundle: Annotated[Path, typer.Argument(help="A bundle written by `slam6d bundle export`.")],
     sessions_dir: Annotated[Path, typer.Argument(help="Folder of sessions to add the new session to.")],
+    data_root: Annotated[
+        Path | None,
+        typer.Option(help="Where to look for the scans of a bundle exported without them (as a server's --data-root)."),
+    ] = None,
 ) -> None:
-    """Make a new session in SESSIONS_DIR with BUNDLE's history; a bundle that fails a check writes nothing."""
-    from slam6d.bundle import import_bundle
+    """Make a new session in SESSIONS_DIR with BUNDLE's history; a bundle that fails a check writes nothing.
 
-    def reachable(path: Path) -> None:  # a bundle without scans names folders of the machine it came from
-        if not path.exists():
-            err.print(f"[yellow]warning:[/yellow] scan source {path} does not exist here")
+    A bundle exported without its scans is re-linked to them - under --data-root at the place they had
+    in the exporter's data root, or else where they were - once every scan file's sha256 matches."""
+    from slam6d.bundle import import_bundle, local_source_finder
 
-    session = import_bundle(bundle, sessions_dir, check_external_source=reachable, author=os.environ.get("USER", ""))
+    finder = local_source_finder(data_root)
+    session = import_bundle(bundle, sessions_dir, find_source=finder, author=os.environ.get("USER", ""))
     typer.echo(f"{session.folder}: session '{session.name}' at revision {session.journal.head}")
 
 

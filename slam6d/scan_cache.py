@@ -10,6 +10,8 @@ modification time is unchanged; otherwise, or when the file is damaged, it is re
 from __future__ import annotations
 
 import hashlib
+import os
+import threading
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -64,7 +66,9 @@ class ScanCache:
         ]
         sequence = ScanSequence(scans, self.convention, self.sources[0], self.format_name)
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        partial = self.path.with_suffix(".tmp.npz")  # written aside, then renamed: a crash leaves no half cache
+        # written aside, then renamed: a crash leaves no half cache; named per thread, so two first opens
+        # racing (the 3D view and a page's first request) do not rename each other's file away
+        partial = self.path.with_suffix(f".{os.getpid()}-{threading.get_ident()}.tmp.npz")
         np.savez(partial, fingerprint=np.array(fingerprint), **_to_arrays(sequence))  # type: ignore[arg-type]
         partial.replace(self.path)
         # the points as every later open reads them back (float32): what a session computes must not

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import hashlib
 import io
 import json
+import shutil
 import zipfile
 from pathlib import Path
 
@@ -12,7 +14,7 @@ import pytest
 from typer.testing import CliRunner
 
 from slam6d.archive import ArchiveError, ArchiveLimits, extract_zip
-from slam6d.bundle import MANIFEST, export_bundle, import_bundle
+from slam6d.bundle import MANIFEST, export_bundle, import_bundle, local_source_finder
 from slam6d.cli import app
 from slam6d.geometry import make_pose, rot_z
 from slam6d.session import JOURNAL_FILE, Session
@@ -58,8 +60,8 @@ def test_round_trip_keeps_every_revision_and_entry(edited: Session, tmp_path: Pa
     assert any(n.startswith("sources/0/scan000") for n in names) == with_scans
     assert not any(n.startswith("cache/") for n in names)
 
-    allow = (lambda path: None) if not with_scans else None
-    copy = import_bundle(summary.path, tmp_path / "team", check_external_source=allow, author="cy")
+    finder = local_source_finder(None) if not with_scans else None
+    copy = import_bundle(summary.path, tmp_path / "team", find_source=finder, author="cy")
     assert copy.folder.parent == tmp_path / "team" and copy.name == edited.name
     entries, revisions = _history(copy)
     original_entries, original_revisions = _history(edited)
@@ -76,9 +78,83 @@ def test_a_bundle_without_scans_is_refused_where_outside_folders_are_not_allowed
     edited: Session, tmp_path: Path
 ) -> None:
     bundle = export_bundle(edited, tmp_path / "b.zip").path
-    with pytest.raises(ArchiveError, match="outside the bundle; export the bundle with its scans"):
+    with pytest.raises(ArchiveError, match="may not look for them; export it with its scans"):
         import_bundle(bundle, tmp_path / "team")
     assert list((tmp_path / "team").iterdir()) == []
+
+
+def _scan_folder(session: Session) -> Path:
+    (source,) = session.source_paths()
+    return source.resolve()
+
+
+def test_a_bundle_without_scans_is_relinked_under_another_data_root(edited: Session, tmp_path: Path) -> None:
+    """The same scans under another machine's data root: found by their place in it, hashes checked."""
+    origin_root = _scan_folder(edited).parent
+    bundle = export_bundle(edited, tmp_path / "b.zip", data_root=origin_root).path
+    manifest = json.loads(zipfile.ZipFile(bundle).read(MANIFEST))
+    (record,) = manifest["sources"]
+    assert record["data_root_path"] == _scan_folder(edited).name
+    assert {f["path"] for f in record["files"]} >= {"scan000.3d", "scan001.3d", "scan002.3d"}
+
+    other_root = tmp_path / "elsewhere" / "data"
+    shutil.copytree(_scan_folder(edited), other_root / _scan_folder(edited).name)
+    shutil.rmtree(_scan_folder(edited))  # the recorded absolute path is gone: only the data root has them
+    copy = import_bundle(bundle, tmp_path / "team", find_source=local_source_finder(other_root))
+    assert copy.source_paths() == [other_root / record["data_root_path"]]
+    np.testing.assert_allclose(copy.load_sequence().poses()[1], edited.poses()[1], atol=1e-12)
+    assert len(copy.load_sequence().scans[2].points) == 400
+
+
+@pytest.mark.parametrize("damage", ["missing", "altered"])
+def test_a_bundle_without_scans_is_refused_naming_what_is_missing(edited: Session, tmp_path: Path, damage: str) -> None:
+    origin_root = _scan_folder(edited).parent
+    bundle = export_bundle(edited, tmp_path / "b.zip", data_root=origin_root).path
+    scan = _scan_folder(edited) / "scan001.3d"
+    if damage == "missing":
+        scan.unlink()
+    else:
+        scan.write_text(scan.read_text().replace("0", "1", 1))
+    expected = "missing scan001.3d" if damage == "missing" else "'scan001.3d' differs from the exported file"
+    with pytest.raises(ArchiveError, match=f"scan source 0 .*{expected}"):
+        import_bundle(bundle, tmp_path / "team", find_source=local_source_finder(origin_root))
+    assert list((tmp_path / "team").iterdir()) == []
+
+
+def test_a_bundle_with_scans_cannot_point_at_a_folder_outside_it(edited: Session, tmp_path: Path) -> None:
+    """Only sources found and hashed by the import are opened: a with-scans bundle naming /etc is refused."""
+    bundle = export_bundle(edited, tmp_path / "b.zip", include_scans=True).path
+    names = zipfile.ZipFile(bundle).namelist()
+    toml = zipfile.ZipFile(bundle).read("session.toml").decode()
+    evil_toml = toml.replace('"sources/0"', f'"{_scan_folder(edited)}"').encode()
+    assert evil_toml != toml.encode() and "session.toml" in names
+    evil = tmp_path / "evil.zip"
+    with zipfile.ZipFile(bundle) as source, zipfile.ZipFile(evil, "w") as target:
+        manifest = json.loads(source.read(MANIFEST))
+        for item in manifest["files"]:
+            if item["path"] == "session.toml":
+                item["sha256"], item["bytes"] = hashlib.sha256(evil_toml).hexdigest(), len(evil_toml)
+        for name in names:
+            data = evil_toml if name == "session.toml" else source.read(name)
+            target.writestr(name, json.dumps(manifest) if name == MANIFEST else data)
+    with pytest.raises(ArchiveError, match="is not in the bundle"):
+        import_bundle(evil, tmp_path / "team", find_source=local_source_finder(None))
+    assert list((tmp_path / "team").iterdir()) == []
+
+
+def test_cli_imports_a_bundle_without_scans_from_its_data_root(edited: Session, tmp_path: Path) -> None:
+    runner = CliRunner()
+    root = str(_scan_folder(edited).parent)
+    done = runner.invoke(app, ["bundle", "export", str(edited.folder), str(tmp_path / "c.zip"), "--data-root", root])
+    assert done.exit_code == 0, done.output
+    assert "without scans" in done.output
+    done = runner.invoke(
+        app, ["bundle", "import", str(tmp_path / "c.zip"), str(tmp_path / "team"), "--data-root", root]
+    )
+    assert done.exit_code == 0, done.output
+    (_scan_folder(edited) / "scan000.3d").unlink()
+    done = runner.invoke(app, ["bundle", "import", str(tmp_path / "c.zip"), str(tmp_path / "again")])
+    assert done.exit_code != 0 and "missing scan000.3d" in str(done.exception)  # main() prints it as one line
 
 
 def test_cli_export_and_import(edited: Session, tmp_path: Path) -> None:

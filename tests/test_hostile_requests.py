@@ -6,6 +6,7 @@ from __future__ import annotations
 import io
 import json
 import os
+import shutil
 import threading
 import zipfile
 from pathlib import Path
@@ -232,9 +233,35 @@ def test_bundle_download_and_import_round_trip(client: TestClient, sessions_dir:
     copy = imported.json()["id"]
     assert copy != "corridor" and imported.json()["revision"] == client.get(CORRIDOR).json()["revision"]
     assert client.get(f"/api/sessions/{copy}/poses").text == client.get(f"{CORRIDOR}/poses").text
-    without_scans = client.get(f"{CORRIDOR}/bundle").content
-    refused = client.post("/api/sessions/import", files={"file": ("c.zip", without_scans)})
-    assert refused.status_code == 422 and "export the bundle with its scans" in refused.json()["detail"]
     evil = _zip({"../escape.txt": b"x"})
     assert client.post("/api/sessions/import", files={"file": ("e.zip", evil)}).status_code == 422
     assert sorted(p.name for p in sessions_dir.iterdir()) == sorted(["corridor", copy])
+
+
+def test_a_bundle_without_scans_is_relinked_under_the_importing_servers_data_root(
+    sessions_dir: Path, tmp_path: Path
+) -> None:
+    """Exported by one server without scans, imported by another holding the same scans under its own data
+    root: re-linked after every hash is checked; the same bundle where a scan is missing is refused, naming
+    it, with nothing written."""
+    exporter = create_app(sessions_dir, viewers=False, data_root=sessions_dir / "corridor")
+    with TestClient(exporter, base_url="http://127.0.0.1") as origin:
+        assert origin.post(f"{CORRIDOR}/scans/2/pose", json={"pose": _rigid()}).status_code == 200
+        bundle = origin.get(f"{CORRIDOR}/bundle").content
+        poses = origin.get(f"{CORRIDOR}/poses").text
+    other_data, other_sessions = tmp_path / "data", tmp_path / "team"
+    shutil.copytree(sessions_dir / "corridor" / "scans", other_data / "scans")
+    other_sessions.mkdir()
+    importer = create_app(other_sessions, viewers=False, data_root=other_data)
+    with TestClient(importer, base_url="http://127.0.0.1", raise_server_exceptions=False) as team:
+        imported = team.post("/api/sessions/import", files={"file": ("c.zip", bundle)})
+        assert imported.status_code == 201, imported.text
+        copy = imported.json()["id"]
+        assert team.get(f"/api/sessions/{copy}/poses").text == poses
+        assert Session.open(other_sessions / copy).source_paths() == [(other_data / "scans").resolve()]
+
+        (other_data / "scans" / "scan001.3d").unlink()
+        refused = team.post("/api/sessions/import", files={"file": ("c.zip", bundle)})
+        assert refused.status_code == 422
+        assert "scan source 0" in refused.json()["detail"] and "missing scan001.3d" in refused.json()["detail"]
+        assert sorted(p.name for p in other_sessions.iterdir() if not p.name.startswith(".")) == [copy]

@@ -15,6 +15,7 @@ module              resource
 ``traces``          stored traces of registration runs
 ``camera_path``     fly-through keyframes, render jobs, rendered videos
 ``comments``        comments anchored to a scan point, an edge or a loop
+``links``           permalinks: a page link's revision, camera, selection and colour checked
 ``sharing``         who am I, a session's share links (owners)
 ``views``           each session's 3D view (viser) behind the same port
 ==================  =========================================================
@@ -36,6 +37,7 @@ from app.routes import (
     exports,
     guesses,
     jobs,
+    links,
     loops,
     relaxation,
     sessions,
@@ -55,4 +57,5 @@ API_ROUTERS: tuple[APIRouter, ...] = (
     traces.router,
     camera_path.router,
     comments.router,
+    links.router,
 )

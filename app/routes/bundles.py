@@ -2,9 +2,11 @@
 
 The engine does the work (:mod:`slam6d.bundle`); here the bundle is written to a temporary file
 streamed back and deleted afterwards, and an upload is streamed to disk, bounded by the upload
-limit, and imported on a worker thread. A bundle without its scans names folders of the machine
-it came from; the server refuses it (it must not open arbitrary folders) - export with
-``scans=true`` to share a session between servers.
+limit, and imported on a worker thread. A bundle without its scans records where its scans were
+(inside the exporting server's data root) and every scan file's sha256: this server re-links the
+session to the same files under its own ``--data-root`` after checking every hash, and refuses the
+bundle, naming what is missing, when they are not there (it never opens a folder outside its data
+root).
 """
 
 from __future__ import annotations
@@ -31,12 +33,16 @@ router = APIRouter(prefix="/api/sessions", tags=["bundles"])
 def download_bundle(
     session_id: str,
     state: SessionDep,
+    workbench: WorkbenchDep,
     scans: Annotated[bool, Query(description="include the scan files themselves")] = False,
 ) -> FileResponse:
-    """The session as a zip: manifest (sha256 per file), session.toml, journal, traces, camera path[, scans]."""
+    """The session as a zip: manifest (sha256 per file), session.toml, journal, traces, camera path, and the
+    scans (``scans=true``) or the record of where they are and their hashes (re-linked on import)."""
     scratch = Path(tempfile.mkdtemp(prefix="bundle-"))
     try:
-        summary = export_bundle(state.session, scratch / f"{session_id}.zip", include_scans=scans)
+        summary = export_bundle(
+            state.session, scratch / f"{session_id}.zip", include_scans=scans, data_root=workbench.data_root.folder
+        )
     except BaseException:
         shutil.rmtree(scratch, ignore_errors=True)
         raise
@@ -51,13 +57,20 @@ def download_bundle(
 @router.post("/import", status_code=201, response_model=SessionSummary)
 async def import_session(
     workbench: WorkbenchDep,
-    file: Annotated[UploadFile, File(description="a bundle from GET /api/sessions/{id}/bundle?scans=true")],
+    file: Annotated[UploadFile, File(description="a bundle from GET /api/sessions/{id}/bundle")],
     author: Author = "anonymous",
 ) -> dict[str, Any]:
     """A new session with the bundle's history; a bundle failing any check (names, links, nested
-    archives, size, ratio, hashes, journal) is refused with the reason and writes nothing."""
+    archives, size, ratio, hashes, journal, scans neither in it nor found under the data root with
+    their recorded hashes) is refused with the reason and writes nothing."""
     limits = ArchiveLimits(max_total_bytes=workbench.max_upload_bytes)
     session = await run_in_threadpool(
-        import_bundle, file.file, workbench.sessions_dir, limits, None, author, file.filename or "bundle"
+        import_bundle,
+        file.file,
+        workbench.sessions_dir,
+        limits,
+        workbench.data_root.locate,
+        author,
+        file.filename or "bundle",
     )
     return workbench.summary(session.id)

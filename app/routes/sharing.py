@@ -12,7 +12,7 @@ from typing import Annotated, Any, Literal
 from fastapi import APIRouter, HTTPException, Request
 from pydantic import BaseModel, Field
 
-from app.guard import OPEN_GRANT, requires
+from app.guard import OPEN_GRANT, is_open, requires
 from app.tokens import Grant, Role, TokenError, TokenStore, parse_duration
 
 
@@ -31,9 +31,10 @@ def build_sharing_router(tokens: TokenStore) -> APIRouter:
 
     @router.get("/me", openapi_extra=requires(Role.viewer, any_session=True))
     def me(request: Request) -> dict[str, Any]:
-        """The role and name this browser acts with (``open``: a loopback server without tokens)."""
+        """The role and name this browser acts with (``open``: a loopback server without tokens, where the
+        name is the one typed in the page header)."""
         grant = grant_of(request)
-        return {"role": grant.role.name, "name": grant.name, "session": grant.session, "open": grant is OPEN_GRANT}
+        return {"role": grant.role.name, "name": grant.name, "session": grant.session, "open": is_open(grant)}
 
     @router.get("/sessions/{session_id}/tokens", openapi_extra=requires(Role.owner))
     def list_links(session_id: str) -> list[dict[str, Any]]:

@@ -209,46 +209,135 @@ def test_presence_shows_the_other_browser_as_a_frustum_and_follow_takes_its_view
     assert other.status_code == 403
 
 
-def test_a_permalink_restores_revision_and_camera_in_a_fresh_browser(corridor_sessions, live_server, new_browser):
+def _address(page) -> str:  # type: ignore[no-untyped-def]
+    """The page's address, asked of the page: the history API changes it without a navigation."""
+    return unquote(str(page.evaluate("location.href")))
+
+
+def _view_state(page) -> dict:  # type: ignore[no-untyped-def,type-arg]
+    """What the page says it shows (``window.slam6dView``): key, pinned revision, camera, selection, colour."""
+    return dict(page.evaluate("({...window.slam6dView, link: undefined})"))
+
+
+def test_a_permalink_restores_revision_camera_selection_and_colour_in_a_fresh_browser(
+    corridor_sessions, live_server, new_browser
+):
     from app.view.presence import presence_of
+    from app.view.selection_marker import marker_of
 
     server = live_server(corridor_sessions, require_token=True)
     secret, _ = server.app.state.tokens.issue(Role.editor, "corridor", name="ann")
+    headers = {"Authorization": f"Bearer {secret}"}
     page = new_browser()
     page.goto(f"{server.url}/sessions/corridor?token={secret}")
     viewer_frame(page).get_by_text("points shown").wait_for(timeout=60_000)
-    presence = presence_of(server.app.state.viewers.get("corridor"))
+    live = server.app.state.viewers.get("corridor")
+    presence = presence_of(live)
     key = _wait(lambda: presence.listed() and presence.listed()[0]["key"], what="ann's view")
     place = {"position": [2.0, -5.0, 3.0], "look_at": [2.5, 0.0, 0.5], "up": [0.0, 0.0, 1.0], "fov_deg": 50.0}
-    headers = {"Authorization": f"Bearer {secret}"}
     assert httpx.post(
         f"{server.url}/api/sessions/corridor/presence/{key}/camera", json=place, headers=headers
     ).is_success
-
-    def address() -> str:  # asked of the page: the history API changes it without a navigation
-        return str(page.evaluate("location.href"))
-
-    link = _wait(lambda: "cam=2.000,-5.000,3.000" in unquote(address()) and address(), what="the view in the address")
+    form = page.locator("#select-form")  # select edge 1-2 in the page, colour by height
+    form.locator("[name=kind]").select_option("edge")
+    form.locator("[name=i]").fill("1")
+    form.locator("[name=j]").fill("2")
+    form.locator("button[type=submit]").click()
+    page.locator("#colour").select_option("height")
+    link = _wait(
+        lambda: (
+            all(p in _address(page) for p in ("cam=2.000,-5.000,3.000", "sel=edge:1-2", "colour=height"))
+            and _address(page)
+        ),
+        what="the view in the address",
+    )
     revision = server.workbench.state("corridor").session.revision
     assert f"rev={revision}&" in link and "token" not in link
+    page.locator("#colour").select_option("scan")  # the shared colouring back: the link must restore it
+    _wait(lambda: live.as_dict()["colour"] == "scan", what="the colouring reset")
 
-    reader, _ = server.app.state.tokens.issue(Role.viewer, "corridor", name="vic")
+    other, _ = server.app.state.tokens.issue(Role.editor, "corridor", name="ed")
     fresh = new_browser()
-    fresh.goto(f"{link}&token={reader}")
+    fresh.goto(f"{link}&token={other}")
     viewer_frame(fresh).get_by_text("points shown").wait_for(timeout=120_000)  # a loaded CI machine is slow
-    vic = _wait(lambda: next((p for p in presence.listed() if p["name"] == "vic"), None), what="vic's view")
-    placed = _wait(
-        lambda: np.allclose(presence.person(vic["key"]).camera()["position"], place["position"], atol=1e-3),
+    ed = _wait(lambda: next((p for p in presence.listed() if p["name"] == "ed"), None), what="ed's view")
+    _wait(
+        lambda: np.allclose(presence.person(ed["key"]).camera()["position"], place["position"], atol=1e-3),
         what="the link's camera",
     )
-    assert placed
-    camera = presence.person(vic["key"]).camera()
-    assert np.allclose(camera["look_at"], place["look_at"], atol=1e-3) and camera["fov_deg"] == pytest.approx(50.0)
+    camera = presence.person(ed["key"]).camera()
+    assert np.allclose(camera["look_at"], place["look_at"], atol=1e-3)
+    assert np.allclose(camera["up"], place["up"], atol=1e-3) and camera["fov_deg"] == pytest.approx(50.0, abs=1e-3)
+    fresh.locator("#selection-title").get_by_text("Edge 1–2").wait_for(timeout=20_000)  # shown in the panel
+    state = _view_state(fresh)
+    assert state["key"] == ed["key"] and state["pinned"] is None and state["selection"] == "edge:1-2"
+    assert state["colour"] == "height" and fresh.locator("#colour").input_value() == "height"
+    assert live.as_dict()["colour"] == "height"  # the live view recoloured (its colouring is shared)
+    marker = marker_of(presence.person(ed["key"]).client)  # highlighted in ed's own scene
+    assert len(marker.handles) == 1
+    poses = server.workbench.current_poses("corridor")
+    assert np.allclose(marker.handles[0].position, poses[1][:3, 3], atol=1e-4)  # the line starts at scan 1
     assert fresh.locator("#old-revision").is_hidden()  # the link's revision is the current one
 
-    pose = server.workbench.current_poses("corridor")[2].copy()
-    pose[2, 3] += 0.3
-    httpx.post(f"{server.url}/api/sessions/corridor/scans/2/pose", json={"pose": pose.tolist()}, headers=headers)
-    fresh.locator("#old-revision").get_by_text(f"revision {revision};").wait_for(timeout=10_000)  # banner to the head
-    assert fresh.locator("#undo").is_hidden()  # read-only
-    assert fresh.locator("#old-revision a").get_attribute("href") == "/sessions/corridor"
+
+def test_an_old_revision_link_draws_that_revision_read_only_and_its_edits_are_refused(
+    corridor_sessions, live_server, new_browser
+):
+    from app.view.presence import presence_of
+
+    server = live_server(corridor_sessions, require_token=True)
+    secret, _ = server.app.state.tokens.issue(Role.editor, "corridor", name="ed")
+    headers = {"Authorization": f"Bearer {secret}"}
+    base = f"{server.url}/api/sessions/corridor"
+    server.workbench.state("corridor").sequence()  # revision 0 exists once the session was first loaded
+    old = server.workbench.state("corridor").session.revision
+    old_poses = server.workbench.state("corridor").session.poses(old)
+    pose = old_poses[2].copy()
+    pose[2, 3] += 0.8
+    moved = httpx.post(f"{base}/scans/2/pose", json={"pose": pose.tolist()}, headers=headers)
+    assert moved.status_code == 200, moved.text
+    head = moved.json()["revision"]
+    assert head != old
+
+    page = new_browser()
+    page.goto(f"{server.url}/sessions/corridor?rev={old}&sel=scan:2&colour=height&token={secret}")
+    banner = page.locator("#old-revision")
+    banner.get_by_text(f"revision {old} as it was, read-only").wait_for(timeout=60_000)
+    assert f"now at revision {head}" in banner.inner_text()
+    assert "rev=" not in (page.locator("#to-head").get_attribute("href") or "")  # leads to the head
+    assert page.locator("#undo").is_hidden() and page.locator("#comment-form").is_hidden()
+    viewer_frame(page).get_by_text("points shown").wait_for(timeout=120_000)
+    key = _view_state(page)["key"]
+    # the browser is on the old revision's own view, which draws the old pose of scan 2
+    listed = _wait(
+        lambda: next((p for p in httpx.get(f"{base}/presence", headers=headers).json() if p["key"] == key), None),
+        what="the page's view in presence",
+    )
+    assert listed["revision"] == old
+    drawn = httpx.get(f"{base}/view", params={"rev": old}, headers=headers).json()
+    assert drawn["revision_shown"] == old and drawn["read_only"] is True
+    assert np.allclose(drawn["positions"][2], old_poses[2][:3, 3], atol=1e-9)
+    assert not np.allclose(drawn["positions"][2], pose[:3, 3], atol=0.5)
+    rows = httpx.get(f"{base}/poses", params={"rev": old}, headers=headers).text.splitlines()
+    assert np.allclose(drawn["positions"][2], np.array(rows[2].split(), float).reshape(3, 4)[:, 3], atol=1e-6)
+    page.locator("#selection-title").get_by_text("Scan 2").wait_for(timeout=20_000)
+    assert f"revision {old}" in page.locator("#selection-detail").inner_text()
+    state = _view_state(page)
+    assert state["pinned"] == old and state["selection"] == "scan:2" and state["colour"] == "height"
+    view = server.app.state.revision_views.get("corridor", old)
+    person = presence_of(view).person(key)
+    assert person is not None and view.as_dict()["colours"][str(person.client.client_id)] == "height"
+    assert server.app.state.viewers.get("corridor").as_dict()["colour"] == "scan"  # nobody else's view changed
+    _wait(lambda: f"rev={old}" in _address(page) and "sel=scan:2" in _address(page), what="the address")
+
+    # an edit from this page is refused by the server, not only hidden: show the form and send a comment
+    page.evaluate(
+        "document.getElementById('comments').hidden = false; document.getElementById('comment-form').hidden = false"
+    )
+    form = page.locator("#comment-form")
+    form.locator("[name=i]").fill("2")
+    form.locator("[name=text]").fill("from the past")
+    form.locator("button[type=submit]").click()
+    page.locator("#message").get_by_text(f"the session is at revision {head}, not {old}").wait_for(timeout=10_000)
+    assert httpx.get(f"{base}/comments", headers=headers).json() == []
+    assert server.workbench.state("corridor").session.revision == head
