@@ -38,8 +38,7 @@ def serve_parser() -> argparse.ArgumentParser:
         "--max-jobs",
         type=int,
         default=default_job_limit(),
-        help="background jobs running at once over all sessions; more wait queued (default: one per core, "
-        "at least 2)",
+        help="background jobs running at once over all sessions; more wait queued (default: one per core, at least 2)",
     )
     parser.add_argument(
         "--session-memory-budget",

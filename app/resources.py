@@ -95,4 +95,3 @@ class SessionMemory:
         for sid in released:
             log.info("session %s released from memory (budget %d MiB)", sid, self.budget >> 20)
         return released
-

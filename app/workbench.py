@@ -225,8 +225,7 @@ class Workbench:
                     on_release=partial(self._released, session_id),
                     parse_timeout_s=self.limits.parse_timeout_s,
                 )
-        state.last_used = time.monotonic()
-        return state
+        return state  # its scans' last use (what the budget orders by) is stamped by SessionState.sequence
 
     # -------------------------------------------------------------- memory
 
