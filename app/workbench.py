@@ -23,6 +23,7 @@ import numpy as np
 from app.data_root import DataRoot
 from app.errors import EditError, ParseTimeoutError, UnknownSessionError, UploadError
 from app.jobs import Job, JobManager
+from app.parse_worker import parse_session_scans
 from app.resources import Loaded, ResourceLimits, SessionMemory, array_bytes
 from slam6d.archive import ArchiveLimits, extract_zip
 from slam6d.errors import SessionError, Slam6dError
@@ -302,9 +303,9 @@ class Workbench:
 
         Files are copied from their (spooled) streams in chunks and zips unpacked by
         :func:`slam6d.archive.extract_zip` (sizes, ratio, names, links, nested archives checked while
-        streaming); the whole upload shares one size budget. Called off the event loop: parsing every
-        scan takes seconds. On any problem the half-made folder is removed: a refused upload leaves
-        nothing behind.
+        streaming); the whole upload shares one size budget. Called off the event loop; the scans are
+        parsed in a child process under the parse time limit (:mod:`app.parse_worker`). On any
+        problem the half-made folder is removed: a refused upload leaves nothing behind.
         """
         folder = reserve_session_folder(self.sessions_dir, name)
         scans = folder / "scans"
@@ -319,12 +320,23 @@ class Workbench:
                     budget -= _copy_upload(_upload_name(base, filename), stream, scans, budget, self.max_upload_bytes)
             if not any(scans.iterdir()):
                 raise UploadError("the upload contains no files")
-            session = Session.create(folder, name, "scans", format_name, frame)
-            session.load_sequence()  # parses every scan: a bad file is reported now, with its name and line
+            Session.create(folder, name, "scans", format_name, frame)
+            # parses every scan (a bad file is reported now, with its name and line) under the time limit
+            parse_session_scans(folder, self.limits.parse_timeout_s, f"upload '{name}'")
         except BaseException:
             shutil.rmtree(folder, ignore_errors=True)
             raise
-        return session
+        return Session.open(folder)
+
+    def check_imported(self, session: Session, label: str) -> Session:
+        """Parse an imported session's scans as an upload's are (same time limit); on any problem the
+        session folder is removed, so a refused import leaves nothing behind."""
+        try:
+            parse_session_scans(session.folder, self.limits.parse_timeout_s, label)
+        except BaseException:
+            shutil.rmtree(session.folder, ignore_errors=True)
+            raise
+        return Session.open(session.folder)
 
     def _unzip_upload(self, base: str, stream: BinaryIO, folder: Path, scans: Path, budget: int) -> int:
         """Unpack one uploaded zip into ``scans`` (folders flattened); the bytes it took from ``budget``."""

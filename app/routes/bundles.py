@@ -2,7 +2,8 @@
 
 The engine does the work (:mod:`slam6d.bundle`); here the bundle is written to a temporary file
 streamed back and deleted afterwards, and an upload is streamed to disk, bounded by the upload
-limit, and imported on a worker thread. A bundle without its scans names folders of the machine
+limit, imported on a worker thread and its scans parsed in a child process under the parse time
+limit (as an upload's). A bundle without its scans names folders of the machine
 it came from; the server refuses it (it must not open arbitrary folders) - export with
 ``scans=true`` to share a session between servers.
 """
@@ -23,6 +24,7 @@ from app.routes.dependencies import Author, SessionDep, WorkbenchDep
 from app.routes.sessions import SessionSummary
 from slam6d.archive import ArchiveLimits
 from slam6d.bundle import export_bundle, import_bundle
+from slam6d.session import Session
 
 router = APIRouter(prefix="/api/sessions", tags=["bundles"])
 
@@ -57,7 +59,11 @@ async def import_session(
     """A new session with the bundle's history; a bundle failing any check (names, links, nested
     archives, size, ratio, hashes, journal) is refused with the reason and writes nothing."""
     limits = ArchiveLimits(max_total_bytes=workbench.max_upload_bytes)
-    session = await run_in_threadpool(
-        import_bundle, file.file, workbench.sessions_dir, limits, None, author, file.filename or "bundle"
-    )
+    label = file.filename or "bundle"
+
+    def import_and_parse() -> Session:
+        session = import_bundle(file.file, workbench.sessions_dir, limits, None, author, label)
+        return workbench.check_imported(session, f"bundle '{label}'")  # its scans parse, in time
+
+    session = await run_in_threadpool(import_and_parse)
     return workbench.summary(session.id)
