@@ -17,6 +17,7 @@ reading.
 from __future__ import annotations
 
 import multiprocessing
+import os
 import threading
 import time
 from multiprocessing.connection import Connection
@@ -26,6 +27,7 @@ from typing import Any
 from app.errors import ParseTimeoutError, UploadError
 from slam6d.errors import Slam6dError
 
+PARSE_NICENESS = 10  # added to the child's nice value
 START_TIMEOUT_S = 60.0  # a forkserver's first start imports numpy and the readers; later ones fork at once
 _PRELOAD = ["slam6d.session", "slam6d.io.registry"]
 _context_lock = threading.Lock()
@@ -91,8 +93,12 @@ def parse_session_scans(folder: Path, timeout_s: float, label: str = "the upload
 
 
 def _parse_in_child(folder: str, report: Connection) -> None:
-    """In the child: list the files, parse them (reporting each one read), say how it ended."""
+    """In the child: list the files, parse them (reporting each one read), say how it ended.
+
+    At a lower priority than the server: on a busy machine the parse waits, not the other requests."""
     from slam6d.session import Session
+
+    os.nice(PARSE_NICENESS)
 
     try:
         session = Session.open(folder)
