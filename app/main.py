@@ -150,8 +150,13 @@ def serve(args: argparse.Namespace) -> None:
             viewer_grace_s=args.viewer_grace,
             parse_timeout_s=args.parse_timeout,
         )
-    except ValueError as exc:
-        print(f"error: {exc}", file=sys.stderr)
+    except ValueError as exc:  # named as the user typed it
+        flags = {"max_jobs": "--max-jobs", "session_memory_bytes": "--session-memory-budget"}
+        flags |= {"viewer_grace_s": "--viewer-grace", "parse_timeout_s": "--parse-timeout"}
+        message = str(exc)
+        for field_name, flag in flags.items():
+            message = message.replace(field_name, flag)
+        print(f"error: {message}", file=sys.stderr)
         sys.exit(2)
     app = create_app(
         args.sessions_dir,

@@ -200,3 +200,15 @@ def test_rest_cancel_a_queued_job(client):
     entries = client.get("/api/sessions/corridor/journal").json()
     ends = [e["parameters"] for e in entries if e["kind"] == "job" and e["parameters"]["id"] == queued["id"]]
     assert ends[-1]["event"] == "finished" and ends[-1]["status"] == "cancelled"
+
+
+def test_the_server_command_takes_the_limits_and_refuses_nonsense(tmp_path, capsys):
+    from app.main import main, serve_parser
+
+    args = serve_parser().parse_args(
+        ["--max-jobs", "3", "--session-memory-budget", "0.5", "--viewer-grace", "5", "--parse-timeout", "20"]
+    )
+    assert (args.max_jobs, args.session_memory_budget, args.viewer_grace, args.parse_timeout) == (3, 0.5, 5.0, 20.0)
+    with pytest.raises(SystemExit) as stopped:
+        main(["--sessions-dir", str(tmp_path), "--max-jobs", "0"])
+    assert stopped.value.code == 2 and "--max-jobs must be positive" in capsys.readouterr().err
