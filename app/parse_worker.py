@@ -62,9 +62,9 @@ def parse_session_scans(folder: Path, timeout_s: float, label: str = "the upload
             if remaining <= 0 or not receiver.poll(remaining):
                 if not files:
                     raise ParseTimeoutError(f"{label}: the parser did not start within {START_TIMEOUT_S:g} s")
-                at = files[done] if done < len(files) else "the scan cache"
+                doing = f"parsing {files[done]}" if done < len(files) else "writing the scan cache"
                 raise ParseTimeoutError(
-                    f"{label}: parsing {at} took longer than the server's limit of {timeout_s:g} s "
+                    f"{label}: {doing} took longer than the server's limit of {timeout_s:g} s "
                     f"({done} of {len(files)} files read); nothing was kept"
                 )
             try:
