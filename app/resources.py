@@ -24,8 +24,6 @@ from app.jobs import default_job_limit
 log = logging.getLogger("slam6d.workbench")
 
 GIB = 1 << 30
-# a scan's reduced model (points, kd-tree, normals) per byte of its reduced points, measured roughly
-MODEL_BYTES_PER_POINT_BYTE = 3
 
 
 @dataclass(frozen=True)
