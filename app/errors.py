@@ -40,9 +40,15 @@ class PartialResultError(Slam6dError):
 
 
 class JobConflictError(WorkbenchError):
-    """Another job is already running on this session."""
+    """The session already has as many jobs queued as it may hold."""
 
     default_status = 409
+
+
+class ParseTimeoutError(WorkbenchError):
+    """Reading scans took longer than the server's parse time limit (the message names the file)."""
+
+    default_status = 422
 
 
 class UnknownSessionError(LookupError):
@@ -53,4 +59,4 @@ class UnknownSessionError(LookupError):
         super().__init__(f"no session '{session_id}'")
 
 
-__all__ = ["EditError", "JobConflictError", "UnknownSessionError", "UploadError", "WorkbenchError"]
+__all__ = ["EditError", "JobConflictError", "ParseTimeoutError", "UnknownSessionError", "UploadError", "WorkbenchError"]

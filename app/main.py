@@ -12,6 +12,8 @@ import os
 import sys
 from pathlib import Path
 
+from app.jobs import default_job_limit
+
 SUBCOMMANDS = ("serve", "token", "tokens", "revoke")
 
 
@@ -31,6 +33,34 @@ def serve_parser() -> argparse.ArgumentParser:
         "--require-token",
         action="store_true",
         help="ask for an access token even on loopback (always on when bound to another address)",
+    )
+    parser.add_argument(
+        "--max-jobs",
+        type=int,
+        default=default_job_limit(),
+        help="background jobs running at once over all sessions; more wait queued (default: one per core, at least 2)",
+    )
+    parser.add_argument(
+        "--session-memory-budget",
+        type=float,
+        default=4.0,
+        metavar="GB",
+        help="scans of opened sessions kept in memory; past it, the least recently used idle sessions "
+        "release theirs (read again when needed)",
+    )
+    parser.add_argument(
+        "--viewer-grace",
+        type=float,
+        default=60.0,
+        metavar="SECONDS",
+        help="a session's 3D view is stopped this long after its last browser left (started again on return)",
+    )
+    parser.add_argument(
+        "--parse-timeout",
+        type=float,
+        default=300.0,
+        metavar="SECONDS",
+        help="longest time parsing an upload or import (or reading a session's scans) may take",
     )
     parser.add_argument(
         "--server-name",
@@ -103,6 +133,7 @@ def serve(args: argparse.Namespace) -> None:
     import uvicorn
 
     from app.guard import is_loopback
+    from app.resources import GIB, ResourceLimits
     from app.server import create_app
 
     if not args.sessions_dir.is_dir():
@@ -112,6 +143,21 @@ def serve(args: argparse.Namespace) -> None:
         print(f"error: data root {args.data_root} is not a folder", file=sys.stderr)
         sys.exit(2)
     shared = not is_loopback(args.host)
+    try:
+        limits = ResourceLimits(
+            max_jobs=args.max_jobs,
+            session_memory_bytes=int(args.session_memory_budget * GIB),
+            viewer_grace_s=args.viewer_grace,
+            parse_timeout_s=args.parse_timeout,
+        )
+    except ValueError as exc:  # named as the user typed it
+        flags = {"max_jobs": "--max-jobs", "session_memory_bytes": "--session-memory-budget"}
+        flags |= {"viewer_grace_s": "--viewer-grace", "parse_timeout_s": "--parse-timeout"}
+        message = str(exc)
+        for field_name, flag in flags.items():
+            message = message.replace(field_name, flag)
+        print(f"error: {message}", file=sys.stderr)
+        sys.exit(2)
     app = create_app(
         args.sessions_dir,
         max_upload_mb=args.max_upload_mb,
@@ -119,6 +165,7 @@ def serve(args: argparse.Namespace) -> None:
         require_token=args.require_token or shared,
         data_root=args.data_root,
         names=args.server_name,
+        limits=limits,
     )
     shown = "127.0.0.1" if args.host in ("0.0.0.0", "::") else args.host
     ids = app.state.workbench.session_ids()

@@ -35,6 +35,7 @@ from app.guard import (
 )
 from app.limits import RequestLimits
 from app.permalink import LINK_PARAMETERS, parse_link, resolve_link
+from app.resources import ResourceLimits
 from app.revisions import REVISION_RESPONSES, RevisionHeaders, add_revision_errors, check_revision
 from app.routes import API_ROUTERS
 from app.routes.dependencies import SessionDep
@@ -70,15 +71,20 @@ def create_app(
     require_token: bool | None = None,
     data_root: Path | None = None,
     names: Iterable[str] = (),
+    limits: ResourceLimits | None = None,
 ) -> FastAPI:
     """``viewers=False`` leaves out the 3D views (REST-only tests need no viser servers).
 
     ``bind_host`` is the address the server listens on: off loopback, tokens are required (unless
-    ``require_token`` says otherwise) and folder sessions only come from ``data_root``.
+    ``require_token`` says otherwise) and folder sessions only come from ``data_root``. ``limits``
+    bounds running jobs, opened sessions' memory, idle 3D views and parse time.
     """
     shared = not is_loopback(bind_host)
     workbench = Workbench(
-        sessions_dir, max_upload_bytes=max_upload_mb * 1024 * 1024, data_root=DataRoot(data_root, shared)
+        sessions_dir,
+        max_upload_bytes=max_upload_mb * 1024 * 1024,
+        data_root=DataRoot(data_root, shared),
+        limits=limits,
     )
     pages = static_dir()
 

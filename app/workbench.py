@@ -11,6 +11,7 @@ import logging
 import re
 import shutil
 import threading
+import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from functools import partial
@@ -20,13 +21,15 @@ from typing import Any, BinaryIO
 import numpy as np
 
 from app.data_root import DataRoot
-from app.errors import EditError, UnknownSessionError, UploadError
+from app.errors import EditError, ParseTimeoutError, UnknownSessionError, UploadError
 from app.jobs import Job, JobManager
+from app.parse_worker import parse_session_scans
+from app.resources import Loaded, ResourceLimits, SessionMemory, array_bytes
 from slam6d.archive import ArchiveLimits, extract_zip
 from slam6d.errors import SessionError, Slam6dError
 from slam6d.geometry import Matrix
 from slam6d.journal import Change, Revision, StaleRevisionError
-from slam6d.repair import JOB_ENTRY, SessionCheck, check_session, job_records
+from slam6d.repair import JOB_ENTRY, UNFINISHED_JOB_EVENTS, SessionCheck, check_session, job_records
 from slam6d.scan import ScanSequence
 from slam6d.session import SESSION_FILE, Session, reserve_session_folder
 
@@ -37,21 +40,69 @@ _UPLOAD_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,199}$")
 
 @dataclass
 class SessionState:
-    """A session with its scans loaded once and kept at the current revision's poses."""
+    """A session with its scans loaded once and kept at the current revision's poses (until the
+    memory budget releases them: the next :meth:`sequence` reads them again)."""
 
     session: Session
     lock: threading.RLock = field(default_factory=threading.RLock)
     _sequence: ScanSequence | None = None
+    last_used: float = field(default_factory=time.monotonic)
+    on_load: Callable[[], object] | None = None  # told after the scans were read (the budget is checked)
+    on_release: Callable[[], None] | None = None  # told when they are let go
+    parse_timeout_s: float | None = None
 
     def sequence(self, progress: Callable[[int, int], None] | None = None) -> ScanSequence:
+        self.last_used = time.monotonic()
         with self.lock:
-            if self._sequence is None:
-                self._sequence = self.session.load_sequence(progress)
-            return self._sequence
+            sequence, fresh = self._sequence, self._sequence is None
+            if sequence is None:
+                sequence = self._sequence = self._load(progress)
+        if fresh and self.on_load is not None:
+            self.on_load()
+        return sequence
+
+    def _load(self, progress: Callable[[int, int], None] | None) -> ScanSequence:
+        """Read the scans, giving up between files once ``parse_timeout_s`` has passed (naming the file
+        it was at): a session over a folder of huge or slow files fails its job instead of holding it."""
+        if self.parse_timeout_s is None:
+            return self.session.load_sequence(progress)
+        deadline = time.monotonic() + self.parse_timeout_s
+        files = self.session.scan_files()
+        limit = self.parse_timeout_s
+
+        def timed(done: int, total: int) -> None:
+            if time.monotonic() > deadline and done < total:
+                at = files[done].name if done < len(files) else f"scan {done}"
+                raise ParseTimeoutError(f"reading the scans took longer than {limit:g} s; stopped before {at}")
+            if progress is not None:
+                progress(done, total)
+
+        return self.session.load_sequence(timed)
 
     @property
     def loaded(self) -> bool:
         return self._sequence is not None
+
+    def held_bytes(self) -> int:
+        """The scans' arrays in memory (an estimate of what releasing them frees)."""
+        sequence = self._sequence
+        if sequence is None:
+            return 0
+        return array_bytes(a for scan in sequence.scans for a in (scan.points, scan.intensity))
+
+    def release(self) -> bool:
+        """Let the scans go (the journal stays open); False when someone holds the lock (busy)."""
+        if not self.lock.acquire(blocking=False):
+            return False
+        try:
+            if self._sequence is None:
+                return False
+            self._sequence = None
+        finally:
+            self.lock.release()
+        if self.on_release is not None:
+            self.on_release()
+        return True
 
     def apply_head(self) -> None:
         """Move the loaded scans to the journal's current revision."""
@@ -67,14 +118,21 @@ class Workbench:
         sessions_dir: Path | str,
         max_upload_bytes: int = 512 * 1024 * 1024,
         data_root: DataRoot | None = None,
+        limits: ResourceLimits | None = None,
     ) -> None:
         self.sessions_dir = Path(sessions_dir)
         self.data_root = data_root or DataRoot(None, shared=False)
         self.sessions_dir.mkdir(parents=True, exist_ok=True)
         self.max_upload_bytes = max_upload_bytes
-        self.jobs = JobManager(record=self._record_job)
+        self.limits = limits or ResourceLimits()
+        self.jobs = JobManager(record=self._record_job, max_running=self.limits.max_jobs)
         self._states: dict[str, SessionState] = {}
         self._lock = threading.Lock()
+        # besides a job, what keeps a session's scans in memory (the 3D views add theirs)
+        self.in_use_checks: list[Callable[[str], bool]] = []
+        self._release_listeners: list[Callable[[str], None]] = []
+        self.memory = SessionMemory(self.limits.session_memory_bytes, self._in_use)
+        self.jobs.on_change(self._job_changed)
         self._revision_listeners: list[Callable[[str], None]] = []
         self._camera_path_listeners: list[Callable[[str], None]] = []
         self.checks: dict[str, SessionCheck] = {}
@@ -97,7 +155,7 @@ class Workbench:
         try:
             session = self.state(job.session_id).session
             parameters: dict[str, Any] = {"id": job.id, "event": event, "kind": job.kind, "status": job.status}
-            if event == "started":
+            if event in ("started", "running"):  # accepted, and (after waiting in the queue) begun
                 parameters["revision"] = session.journal.head
             elif job.message:
                 parameters["message"] = job.message[:500]
@@ -115,7 +173,8 @@ class Workbench:
                 continue
             record = job_records(entries).get(job_id)
             if record is not None:
-                status = "interrupted" if record.get("event") == "started" else record.get("status", "interrupted")
+                unfinished = record.get("event") in UNFINISHED_JOB_EVENTS
+                status = "interrupted" if unfinished else record.get("status", "interrupted")
                 return {**record, "id": job_id, "session_id": session_id, "status": status, "from_journal": True}
         return None
 
@@ -159,9 +218,39 @@ class Workbench:
         if check is not None and check.error:
             raise SessionError(self.sessions_dir / session_id, f"cannot be opened: {check.error}")
         with self._lock:
-            if session_id not in self._states:
-                self._states[session_id] = SessionState(Session.open(self.sessions_dir / session_id))
-            return self._states[session_id]
+            state = self._states.get(session_id)
+            if state is None:
+                state = self._states[session_id] = SessionState(
+                    Session.open(self.sessions_dir / session_id),
+                    on_load=self.enforce_memory_budget,
+                    on_release=partial(self._released, session_id),
+                    parse_timeout_s=self.limits.parse_timeout_s,
+                )
+        return state  # its scans' last use (what the budget orders by) is stamped by SessionState.sequence
+
+    # -------------------------------------------------------------- memory
+
+    def _in_use(self, session_id: str) -> bool:
+        return session_id in self.jobs.busy_sessions() or any(check(session_id) for check in self.in_use_checks)
+
+    def on_release(self, listener: Callable[[str], None]) -> None:
+        """``listener(session_id)`` runs after the memory budget released a session's scans (drop what
+        was derived from them)."""
+        self._release_listeners.append(listener)
+
+    def _released(self, session_id: str) -> None:
+        for listener in self._release_listeners:
+            listener(session_id)
+
+    def _job_changed(self, job: Job) -> None:
+        if not job.active:  # the session it held may now be let go
+            self.enforce_memory_budget()
+
+    def enforce_memory_budget(self) -> list[str]:
+        """Release least recently used idle sessions' scans while the opened ones exceed the budget."""
+        with self._lock:
+            states: dict[str, Loaded] = dict(self._states)
+        return self.memory.enforce(states)
 
     def summary(self, session_id: str) -> dict[str, Any]:
         """What the landing page lists; a broken session is listed with its error rather than hidden."""
@@ -214,9 +303,9 @@ class Workbench:
 
         Files are copied from their (spooled) streams in chunks and zips unpacked by
         :func:`slam6d.archive.extract_zip` (sizes, ratio, names, links, nested archives checked while
-        streaming); the whole upload shares one size budget. Called off the event loop: parsing every
-        scan takes seconds. On any problem the half-made folder is removed: a refused upload leaves
-        nothing behind.
+        streaming); the whole upload shares one size budget. Called off the event loop; the scans are
+        parsed in a child process under the parse time limit (:mod:`app.parse_worker`). On any
+        problem the half-made folder is removed: a refused upload leaves nothing behind.
         """
         folder = reserve_session_folder(self.sessions_dir, name)
         scans = folder / "scans"
@@ -231,12 +320,23 @@ class Workbench:
                     budget -= _copy_upload(_upload_name(base, filename), stream, scans, budget, self.max_upload_bytes)
             if not any(scans.iterdir()):
                 raise UploadError("the upload contains no files")
-            session = Session.create(folder, name, "scans", format_name, frame)
-            session.load_sequence()  # parses every scan: a bad file is reported now, with its name and line
+            Session.create(folder, name, "scans", format_name, frame)
+            # parses every scan (a bad file is reported now, with its name and line) under the time limit
+            parse_session_scans(folder, self.limits.parse_timeout_s, f"upload '{name}'")
         except BaseException:
             shutil.rmtree(folder, ignore_errors=True)
             raise
-        return session
+        return Session.open(folder)
+
+    def check_imported(self, session: Session, label: str) -> Session:
+        """Parse an imported session's scans as an upload's are (same time limit); on any problem the
+        session folder is removed, so a refused import leaves nothing behind."""
+        try:
+            parse_session_scans(session.folder, self.limits.parse_timeout_s, label)
+        except BaseException:
+            shutil.rmtree(session.folder, ignore_errors=True)
+            raise
+        return Session.open(session.folder)
 
     def _unzip_upload(self, base: str, stream: BinaryIO, folder: Path, scans: Path, budget: int) -> int:
         """Unpack one uploaded zip into ``scans`` (folders flattened); the bytes it took from ``budget``."""

@@ -31,9 +31,11 @@ from slam6d.journal import JournalEntry, check_journal_file
 from slam6d.session import JOURNAL_FILE, Session
 
 # Journal entries of background jobs (written by the workbench): parameters hold ``id``, ``event``
-# ("started", "finished" or "interrupted"), the job ``kind``, the ``revision`` it started from and,
-# once ended, its ``status``.
+# ("started" when accepted, "running" when a queued job begins, "finished" or "interrupted"), the job
+# ``kind``, the ``revision`` it started from and, once ended, its ``status``.
 JOB_ENTRY = "job"
+# a job's last record says it had not ended: accepted (and maybe queued), or begun after waiting
+UNFINISHED_JOB_EVENTS = ("started", "running")
 REPAIR_AUTHOR = "repair"
 
 
@@ -141,7 +143,7 @@ def mark_interrupted_jobs(session: Session) -> list[str]:
     """Journal every job that started but never ended as interrupted; one line per job."""
     notes = []
     for job_id, record in job_records(session.journal.entries()).items():
-        if record.get("event") != "started":
+        if record.get("event") not in UNFINISHED_JOB_EVENTS:
             continue
         session.journal.append(
             REPAIR_AUTHOR,

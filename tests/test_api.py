@@ -260,8 +260,9 @@ def test_cancelling_a_job(client):
 
     job = workbench.jobs.submit("corridor", "test", work, "ana")
     gate.wait(5)
-    conflict = client.post("/api/sessions/corridor/jobs", json={"kind": "reload"})
-    assert conflict.status_code == 409
+    waiting = client.post("/api/sessions/corridor/jobs", json={"kind": "register"})  # same lane: queued
+    assert waiting.status_code == 202 and waiting.json()["status"] == "queued"
+    assert client.delete(f"/api/jobs/{waiting.json()['id']}").json()["status"] == "cancelled"
     assert client.delete(f"/api/jobs/{job.id}").json()["cancel_requested"] is True
     assert workbench.jobs.wait(job.id).status == "cancelled"
     assert client.get(f"/api/jobs/{job.id}").json()["status"] == "cancelled"

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from app.resources import ResourceLimits
 from app.server import create_app
 from tests.session_fixtures import corridor_session
 
@@ -17,7 +18,7 @@ class Click:
 def viewer(tmp_path):
     root = tmp_path / "sessions"
     corridor_session(root, scans=3, points=1500, odometry_noise=0.1)
-    app = create_app(root)
+    app = create_app(root, limits=ResourceLimits(viewer_grace_s=3600))  # no browser: keep the view
     view = app.state.viewers.get("corridor")
     assert view.ready.wait(30) and view.error is None
     yield view

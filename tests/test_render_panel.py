@@ -155,7 +155,9 @@ def test_cancelled_render_leaves_no_file(client, sessions_dir):
     while client.get(f"/api/jobs/{job_id}").json()["done"] < 3:  # cancel in the middle of rendering
         assert time.monotonic() < deadline, "render made no progress"
         time.sleep(0.02)
-    assert client.post("/api/sessions/corridor/render", json={"width": 64, "height": 48}).status_code == 409
+    queued = client.post("/api/sessions/corridor/render", json={"width": 64, "height": 48})
+    assert queued.status_code == 202 and queued.json()["status"] == "queued"  # one render at a time per session
+    client.delete(f"/api/jobs/{queued.json()['id']}")
     client.delete(f"/api/jobs/{job_id}")
     job = wait_job(client, job_id)
     assert job["status"] == "cancelled" and 3 <= job["done"] < 20_000

@@ -160,11 +160,12 @@ def test_pick_scan_takes_the_scan_under_the_cursor_and_in_front():
 
 @pytest.fixture
 def corridor_view(tmp_path):  # type: ignore[no-untyped-def]
+    from app.resources import ResourceLimits
     from app.server import create_app
     from tests.session_fixtures import corridor_session
 
     corridor_session(tmp_path / "sessions", scans=3, points=20_000)  # true poses: every edge agrees
-    app = create_app(tmp_path / "sessions")
+    app = create_app(tmp_path / "sessions", limits=ResourceLimits(viewer_grace_s=3600))
     view = app.state.viewers.get("corridor")
     assert view.ready.wait(30) and view.error is None
     yield view
@@ -290,6 +291,7 @@ def _never_recomputed(*args, **kwargs):  # type: ignore[no-untyped-def]
 
 def test_a_reopened_view_reuses_the_display_selection_of_the_first_open(tmp_path, monkeypatch):
     """The first open reads the scan files (float64), later ones the parsed cache (float32): same key."""
+    from app.resources import ResourceLimits
     from app.server import create_app
     from tests.session_fixtures import corridor_session
 
@@ -298,7 +300,7 @@ def test_a_reopened_view_reuses_the_display_selection_of_the_first_open(tmp_path
     for attempt in range(2):
         if attempt:
             monkeypatch.setattr(display, "budget_selection", _never_recomputed)
-        app = create_app(tmp_path / "sessions")
+        app = create_app(tmp_path / "sessions", limits=ResourceLimits(viewer_grace_s=3600))
         view = app.state.viewers.get("corridor")
         assert view.ready.wait(30) and view.error is None
         shown.append([p.copy() for p in view.local])

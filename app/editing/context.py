@@ -32,6 +32,12 @@ class EditContext:
         self.workbench = workbench
         self._models: dict[str, tuple[int, ScanModels]] = {}
         self.lock = threading.Lock()
+        workbench.on_release(self.forget)
+
+    def forget(self, session_id: str) -> None:
+        """Drop a session's reduced scans (its scans were released from memory; rebuilt on next use)."""
+        with self.lock:
+            self._models.pop(session_id, None)
 
     def session(self, session_id: str) -> Session:
         return self.workbench.state(session_id).session

@@ -2,7 +2,8 @@
 
 The engine does the work (:mod:`slam6d.bundle`); here the bundle is written to a temporary file
 streamed back and deleted afterwards, and an upload is streamed to disk, bounded by the upload
-limit, and imported on a worker thread. A bundle without its scans records where its scans were
+limit, imported on a worker thread and its scans parsed in a child process under the parse time
+limit (as an upload's). A bundle without its scans records where its scans were
 (inside the exporting server's data root) and every scan file's sha256: this server re-links the
 session to the same files under its own ``--data-root`` after checking every hash, and refuses the
 bundle, naming what is missing, when they are not there (it never opens a folder outside its data
@@ -25,6 +26,7 @@ from app.routes.dependencies import Author, SessionDep, WorkbenchDep
 from app.routes.sessions import SessionSummary
 from slam6d.archive import ArchiveLimits
 from slam6d.bundle import export_bundle, import_bundle
+from slam6d.session import Session
 
 router = APIRouter(prefix="/api/sessions", tags=["bundles"])
 
@@ -64,13 +66,11 @@ async def import_session(
     archives, size, ratio, hashes, journal, scans neither in it nor found under the data root with
     their recorded hashes) is refused with the reason and writes nothing."""
     limits = ArchiveLimits(max_total_bytes=workbench.max_upload_bytes)
-    session = await run_in_threadpool(
-        import_bundle,
-        file.file,
-        workbench.sessions_dir,
-        limits,
-        workbench.data_root.locate,
-        author,
-        file.filename or "bundle",
-    )
+    label = file.filename or "bundle"
+
+    def import_and_parse() -> Session:
+        session = import_bundle(file.file, workbench.sessions_dir, limits, workbench.data_root.locate, author, label)
+        return workbench.check_imported(session, f"bundle '{label}'")  # its scans parse, in time
+
+    session = await run_in_threadpool(import_and_parse)
     return workbench.summary(session.id)

@@ -100,7 +100,7 @@ async def _unexpected(request: Request, exc: Exception) -> JSONResponse:
 
 _REASONS = {
     404: "No such session, job, scan, edge, loop, keyframe or revision.",
-    409: "Conflicts with the session's state (nothing to undo, a job already running, a graph that cannot relax).",
+    409: "Conflicts with the session's state (nothing to undo, the session's job queue full, a graph that cannot relax).",
     413: "The request body (or what an archive in it expands to) exceeds this endpoint's limit.",
     422: "Invalid request (schema problems as a list) or data the engine refuses (a message naming file or field).",
     500: "A bug: the answer holds only a reference to the server log.",

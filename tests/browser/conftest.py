@@ -21,6 +21,7 @@ import pytest
 import uvicorn
 from PIL import Image
 
+from app.resources import ResourceLimits
 from app.server import create_app
 from slam6d.session import Session
 from tests.conftest import PROJECT_ROOT
@@ -49,6 +50,8 @@ def free_port() -> int:
 class LiveServer:
     def __init__(self, sessions_dir: Path, **options: Any) -> None:
         """``options`` go to ``create_app`` (e.g. ``require_token=True``: as if bound off loopback)."""
+        # a view a test holds is not stopped between its pages (test_viewer_lifecycle tests stopping)
+        options.setdefault("limits", ResourceLimits(viewer_grace_s=600))
         self.app = create_app(sessions_dir, **options)
         self.port = free_port()
         self.url = f"http://127.0.0.1:{self.port}"

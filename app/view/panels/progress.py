@@ -17,5 +17,7 @@ def show_job_progress(job: Any, start: Any, cancel: Any, progress: Any, status: 
     progress.visible = job.active
     if job.total:
         progress.value = 100.0 * job.done / job.total
-    if job.active:
+    if job.status == "queued":  # waiting for its lane on the session or a free slot on the server
+        status.content = f"{label}: queued (position {job.position})"
+    elif job.active:
         status.content = f"{label}: {job.stage or 'starting'} {job.done}/{job.total}"
