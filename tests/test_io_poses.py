@@ -136,6 +136,7 @@ def test_sequence_frames_are_written_in_the_native_frame(tmp_path: Path) -> None
         ("1 0 0 0 0 1 0 0 0 0 1 0 5 6 7 1 9", "unknown frame type"),
         ("1 0 0 5 0 1 0 6 0 0 1 7 0 0 0 1 1", "column-major"),
         ("1 0 0 0 0 1 0 0 0 0 1 0 5 6 7 1", "expected 17 numbers"),
+        ("1 0 0 0 0 1\r0 0 0 0 1 0 5 6 7 1 1", "expected 17 numbers"),  # \r ends a line (found by the fuzzer)
     ],
 )
 def test_frames_errors_name_line(tmp_path: Path, line: str, match: str) -> None:
