@@ -16,7 +16,18 @@ from pathlib import Path
 import pytest
 from misbehaving_reader import misbehave
 
-from benchmarks.fuzz_readers import Limits, Seed, Target, Worker, fuzz, is_failure, mutated, read_outcome, targets
+from benchmarks.fuzz_readers import (
+    Limits,
+    Seed,
+    Target,
+    Worker,
+    e57_page_checksums,
+    fuzz,
+    is_failure,
+    mutated,
+    read_outcome,
+    targets,
+)
 
 INPUTS_PER_READER = 80
 TARGETS = {t.name: t for t in targets()}
@@ -43,6 +54,16 @@ def test_the_same_number_makes_the_same_input_and_inputs_differ() -> None:
     assert mutated(target, 7) == mutated(target, 7)
     assert len({mutated(target, index).data for index in range(50)}) == 50
     assert all(mutated(target, index).data not in {s.data for s in target.seeds} for index in range(50))
+
+
+def test_resealed_e57_pages_carry_the_checksums_libe57_writes() -> None:
+    """The e57 inputs get past libE57's page checksums (else the fuzzer only tests the checksum)."""
+    seed = TARGETS["e57"].seeds[0].data
+    assert len(seed) >= 2048 and e57_page_checksums(seed) == seed
+    damaged = bytearray(seed)
+    damaged[1500] ^= 0x10
+    resealed = e57_page_checksums(bytes(damaged))
+    assert resealed[:1024] == seed[:1024] and resealed[2044:2048] != seed[2044:2048]
 
 
 def test_the_harness_reports_every_kind_of_failure_and_goes_on(tmp_path: Path) -> None:
