@@ -398,14 +398,14 @@ class Worker:
     def __init__(self, target: Target, limits: Limits, scratch: Path) -> None:
         self.target = target
         self.limits = limits
-        self.log_path = scratch / f"worker-{os.getpid()}.log"
+        self.log_path = scratch / "worker.log"  # its stdout and stderr, read when it dies
         self.restarts = 0
         self._process: subprocess.Popen[bytes] | None = None
         self._inbox: Connection | None = None
         self._outbox: Connection | None = None
 
     def _start(self) -> None:
-        to_worker, from_parent = os.pipe()[::-1]
+        from_parent, to_worker = os.pipe()  # (read end, write end)
         from_worker, to_parent = os.pipe()
         code = "import sys; from benchmarks.fuzz_readers import serve; serve(int(sys.argv[1]), int(sys.argv[2]))"
         with open(self.log_path, "wb") as log:
