@@ -291,6 +291,9 @@ def test_pcd_binary_truncated(tmp_path: Path) -> None:
         ("VERSION 0.7\nFIELDS x y\nSIZE 4 4\nTYPE F F\nWIDTH 1\nDATA ascii\n1 2\n", None, "no field(s) ['z']"),
         ("VERSION 0.7\nCOLOUR red\n", 2, "unexpected PCD header keyword"),
         ("VERSION 0.7\nFIELDS x y z\n", 3, "ends before its DATA"),
+        # found by the fuzzer: numpy could not even build the record type for these
+        (f"FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 {2**64 - 1}\nWIDTH 1\nDATA ascii\n1 2 3\n", None, "COUNT"),
+        ("FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 0 1\nWIDTH 1\nDATA binary\n" + "\0" * 12, None, "at least 1"),
     ],
 )
 def test_pcd_bad_header(tmp_path: Path, header: str, line: int | None, match: str) -> None:
@@ -377,6 +380,20 @@ def test_las_header_claiming_a_trillion_points_is_refused_before_allocating(tmp_
     raw[107:111] = (2**32 - 1).to_bytes(4, "little")  # legacy point count
     path.write_bytes(bytes(raw))
     _assert_format_error(path, match="more than the file's")
+
+
+def test_laz_chunk_size_beyond_the_points_is_refused_before_lazrs_allocates_it(tmp_path: Path) -> None:
+    """Found by the fuzzer: lazrs allocated a damaged chunk size's records (85 GB) and aborted."""
+    path = tmp_path / "chunks.laz"
+    write_las(path, POINTS, intensity=INTENSITY)
+    raw = bytearray(path.read_bytes())
+    header_size = int.from_bytes(raw[94:96], "little")
+    assert raw[header_size + 2 : header_size + 16] == b"laszip encoded"  # the first record is LASzip's
+    chunk_size_at = header_size + 54 + 12
+    assert int.from_bytes(raw[chunk_size_at : chunk_size_at + 4], "little") == 50_000
+    raw[chunk_size_at : chunk_size_at + 4] = (2**32 - 61).to_bytes(4, "little")
+    path.write_bytes(bytes(raw))
+    _assert_format_error(path, match="LAZ chunk size of 4,294,967,235 points is damaged")
 
 
 def test_e57_broken(tmp_path: Path) -> None:

@@ -107,6 +107,32 @@ def test_g2o_round_trip(tmp_path: Path) -> None:
         np.testing.assert_allclose(rinf, inf)
 
 
+@pytest.mark.parametrize(
+    ("line", "match"),
+    [
+        ("VERTEX_SE3:QUAT nan 1 0 0 0 0 0 1", "vertex ids must be integers"),  # found by the fuzzer: ValueError
+        ("VERTEX_SE3:QUAT 1.5 1 0 0 0 0 0 1", "vertex ids must be integers"),
+        ("VERTEX_SE3:QUAT 1 nan 0 0 0 0 0 1", "NaN or infinity"),
+        ("VERTEX_SE3:QUAT 1 1 0 0 0 0 0 0", "quaternion has zero length"),
+        ("EDGE_SE3:QUAT 0 1 1 0 0 0 0 0 0 " + " ".join(["1"] * 21), "quaternion has zero length"),
+        ("EDGE_SE3:QUAT 0 1 1 0 0 0 0 0 1 " + " ".join(["inf"] * 21), "NaN or infinity"),
+    ],
+)
+def test_g2o_errors_name_file_and_line(tmp_path: Path, line: str, match: str) -> None:
+    path = tmp_path / "graph.g2o"
+    path.write_text("VERTEX_SE3:QUAT 0 0 0 0 0 0 0 1\n" + line + "\n")
+    with pytest.raises(FormatError, match=match) as info:
+        read_g2o(path)
+    assert "graph.g2o:2:" in str(info.value)
+
+
+def test_tum_zero_quaternion_is_refused_not_turned_into_nan(tmp_path: Path) -> None:
+    path = tmp_path / "tum.txt"
+    path.write_text("0 0 0 0 0 0 0 1\n# comment\n1 1 0 0 0 0 0 0\n")
+    with pytest.raises(FormatError, match=r"tum\.txt:3: quaternion has zero length"):
+        read_poses_file(path)
+
+
 def test_frames_round_trip_and_layout(tmp_path: Path) -> None:
     path = tmp_path / "scan000.frames"
     entries = [(POSES[0], FrameType.ICP), (POSES[1], FrameType.LUM), (POSES[2], FrameType.ELCH)]
@@ -136,6 +162,7 @@ def test_sequence_frames_are_written_in_the_native_frame(tmp_path: Path) -> None
         ("1 0 0 0 0 1 0 0 0 0 1 0 5 6 7 1 9", "unknown frame type"),
         ("1 0 0 5 0 1 0 6 0 0 1 7 0 0 0 1 1", "column-major"),
         ("1 0 0 0 0 1 0 0 0 0 1 0 5 6 7 1", "expected 17 numbers"),
+        ("1 0 0 0 0 1\r0 0 0 0 1 0 5 6 7 1 1", "expected 17 numbers"),  # \r ends a line (found by the fuzzer)
     ],
 )
 def test_frames_errors_name_line(tmp_path: Path, line: str, match: str) -> None:

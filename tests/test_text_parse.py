@@ -37,3 +37,15 @@ def test_general_parser_still_reads_nan_and_names_the_bad_line() -> None:
     assert np.isnan(rows[1, 0]) and rows[1, 2] == 5.0
     with pytest.raises(FormatError, match=r"a\.xyz:2: expected 3 numbers"):
         parse_numeric_rows(Path("a.xyz"), "1 2 3\n4 5\n", (3,))
+
+
+@pytest.mark.parametrize("separator", ["\r", "\x0b", "\x0c"])
+def test_a_lone_carriage_return_ends_a_row_on_both_paths(separator: str) -> None:
+    """Lines are what ``str.splitlines`` says (old Mac files end lines with ``\\r``), so the fast
+    path's rows and the line numbers readers give in their messages count the same lines."""
+    text = f"1 2 3{separator}4 5 6\n"
+    fast = parse_numeric_bytes(text.encode(), (3, 6))
+    np.testing.assert_array_equal(fast, [[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]])
+    np.testing.assert_array_equal(parse_numeric_rows(Path("a.xyz"), text.replace("1", "nan"), (3, 6))[1], [4, 5, 6])
+    with pytest.raises(FormatError, match=r"a\.xyz:2: expected 3 numbers"):
+        parse_numeric_rows(Path("a.xyz"), f"1 2 3\n4 5{separator}6\n", (3,))

@@ -67,7 +67,36 @@ def check_las_header(path: Path, stream: BinaryIO, file_size: int) -> None:
             f"{file_size:,} bytes can hold (truncated or damaged)",
         )
     if compressed:
+        _check_laz_chunk_size(path, stream, header_size, vlrs, points * record_length, record_length)
         _check_laz_chunk_table(path, stream, point_offset, file_size, points)
+
+
+_LASZIP_VLR = (b"laszip encoded", 22204)
+_VARIABLE_CHUNKS = 2**32 - 1  # LASzip's chunk size for chunks of varying point counts
+_MAX_CHUNK_BYTES = 64 << 20  # LASzip writes 50,000 points per chunk: at most 3.3 MB of records
+
+
+def _check_laz_chunk_size(
+    path: Path, stream: BinaryIO, header_size: int, vlrs: int, point_bytes: int, record_length: int
+) -> None:
+    """The LASzip record's points per chunk must fit the file's points (or a usual chunk's size).
+
+    lazrs allocates a whole chunk's records before decompressing it, whatever the point count says:
+    a damaged chunk size of 4 x 10^9 made it abort the process asking for 85 GB.
+    """
+    stream.seek(header_size)
+    for _ in range(vlrs):
+        head = stream.read(_MIN_VLR_BYTES)
+        if len(head) < _MIN_VLR_BYTES:
+            return  # a truncated record list: laspy refuses it with its own error
+        user_id, record_id = head[2:18].rstrip(b"\0"), int.from_bytes(head[18:20], "little")
+        length = int.from_bytes(head[20:22], "little")
+        if (user_id, record_id) == _LASZIP_VLR and length >= 16:
+            chunk_size = int.from_bytes(stream.read(16)[12:16], "little")
+            if chunk_size != _VARIABLE_CHUNKS and chunk_size * record_length > max(point_bytes, _MAX_CHUNK_BYTES):
+                raise FormatError(path, f"LAZ chunk size of {chunk_size:,} points is damaged (more than the file's)")
+            return
+        stream.seek(length, 1)
 
 
 def _check_laz_chunk_table(path: Path, stream: BinaryIO, point_offset: int, file_size: int, points: int) -> None:

@@ -28,6 +28,9 @@ INTENSITY_NAMES = ("intensity", "i", "reflectance")
 # An LZF back-reference of 3 bytes stands for at most 264: no stream expands more than ~88-fold, so a
 # size word claiming more is damaged (and would allocate that much before decoding failed).
 _LZF_MAX_EXPANSION = 90
+# PCL's widest point types (SHOT descriptors) take ~5.4 kB; a COUNT making a record larger than this
+# is damaged (a 2^64 COUNT made numpy's record type itself fail).
+_MAX_RECORD_BYTES = 1 << 20
 
 
 @dataclass
@@ -94,6 +97,10 @@ def parse_pcd_header(path: Path, raw: bytes) -> PcdHeader:
         if (kind, size) not in _TYPE_CODES:
             raise FormatError(path, "unsupported TYPE and SIZE combination (F 4/8, I or U 1/2/4/8)")
         dtypes.append(_TYPE_CODES[(kind, size)])
+    if min(counts) < 1 or sum(size * count for size, count in zip(sizes, counts, strict=True)) > _MAX_RECORD_BYTES:
+        raise FormatError(
+            path, f"COUNT entries must be at least 1 and a point's record at most {_MAX_RECORD_BYTES:,} bytes"
+        )
     if viewpoint.shape != (7,):
         raise FormatError(path, "VIEWPOINT needs 7 numbers (tx ty tz qw qx qy qz)")
     width = int(values["WIDTH"][0])

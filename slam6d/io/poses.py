@@ -56,9 +56,16 @@ def _check_rotations(path: Path, text: str, rotations: NDArray[np.float64]) -> N
 # ---------------------------------------------------------------- KITTI, TUM, 4x4
 
 
+# a quaternion this short has no direction: normalising it would turn the pose into NaN
+_MIN_QUATERNION_NORM = 1e-9
+_ZERO_QUATERNION = "quaternion has zero length (no rotation)"
+
+
 def _poses_from_rows(path: Path, text: str, rows: NDArray[np.float64]) -> list[Matrix]:
     """Interpret rows by their column count: 12 = KITTI 3x4, 8 = TUM, 16 = row-major 4x4."""
     if rows.shape[1] == 8:
+        if (zero := np.flatnonzero(~(np.linalg.norm(rows[:, 4:8], axis=1) > _MIN_QUATERNION_NORM))).size:
+            raise FormatError(path, _ZERO_QUATERNION, _line_of_row(path, text, int(zero[0])))
         return [make_pose(quaternion_to_rotation(r[[7, 4, 5, 6]]), r[1:4]) for r in rows]
     matrices = np.tile(np.eye(4), (rows.shape[0], 1, 1))
     if rows.shape[1] == 12:
@@ -155,18 +162,25 @@ def read_g2o(path: Path | str) -> tuple[list[Matrix], list[G2oEdge]]:
         expected = 9 if fields[0] == "VERTEX_SE3:QUAT" else 31
         if len(fields) != expected:
             raise FormatError(path, f"{fields[0]} needs {expected - 1} values, found {len(fields) - 1}", line_no)
+        id_count = 1 if fields[0] == "VERTEX_SE3:QUAT" else 2
         try:
-            values = [float(v) for v in fields[1:]]
+            ids = [int(v) for v in fields[1 : 1 + id_count]]
+        except ValueError:
+            raise FormatError(path, "vertex ids must be integers", line_no) from None
+        try:
+            v = np.array([float(v) for v in fields[1 + id_count :]])
         except ValueError:
             raise FormatError(path, "not a number in the line", line_no) from None
-        if fields[0] == "VERTEX_SE3:QUAT":
-            v = values
-            vertices[int(v[0])] = make_pose(quaternion_to_rotation([v[7], v[4], v[5], v[6]]), v[1:4])
+        if not np.isfinite(v).all():
+            raise FormatError(path, "NaN or infinity in the line", line_no)
+        if not np.linalg.norm(v[3:7]) > _MIN_QUATERNION_NORM:
+            raise FormatError(path, _ZERO_QUATERNION, line_no)
+        pose = make_pose(quaternion_to_rotation(v[[6, 3, 4, 5]]), v[0:3])
+        if id_count == 1:
+            vertices[ids[0]] = pose
         else:
-            v = values
-            relative = make_pose(quaternion_to_rotation([v[8], v[5], v[6], v[7]]), v[2:5])
             info = np.zeros((6, 6))
-            info[rows, cols] = v[9:]
-            info[cols, rows] = v[9:]
-            edges.append((int(v[0]), int(v[1]), relative, info))
+            info[rows, cols] = v[7:]
+            info[cols, rows] = v[7:]
+            edges.append((ids[0], ids[1], pose, info))
     return [vertices[k] for k in sorted(vertices)], edges

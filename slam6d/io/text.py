@@ -77,7 +77,7 @@ def _parse_ascii_numbers(buf, comment, pow10):  # type: ignore[no-untyped-def]
     i = 0
     while i < n:
         c = buf[i]
-        if c == 10:  # newline ends a row
+        if c == 10 or c == 13 or c == 11 or c == 12:  # \n \r \v \f end a row, as str.splitlines says
             if line_cols > 0:
                 if ncols < 0:
                     ncols = line_cols
@@ -86,11 +86,11 @@ def _parse_ascii_numbers(buf, comment, pow10):  # type: ignore[no-untyped-def]
             line_cols = 0
             i += 1
             continue
-        if c == 32 or c == 9 or c == 13 or c == 11 or c == 12:
+        if c == 32 or c == 9:
             i += 1
             continue
         if c == comment and line_cols == 0:
-            while i < n and buf[i] != 10:
+            while i < n and not (buf[i] == 10 or buf[i] == 13 or buf[i] == 11 or buf[i] == 12):
                 i += 1
             continue
         negative = False
