@@ -67,6 +67,20 @@ class DetailStream:
         """Each scan's points at its level (float32, own frame)."""
         return [self.levels.points(k, level) for k, level in enumerate(levels)]
 
+    def coarse_map(self, levels: Sequence[int], poses: Sequence[Matrix]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Every scan at ``levels`` as one cloud, each in its scan colour: (points relative to the map's
+        centre, float32; colours; that centre). One message and one scene node for the whole map."""
+        centre = np.mean([p[:3, 3] for p in poses], axis=0)
+        clouds = self.read(levels)
+        world = [
+            c @ p[:3, :3].T.astype(np.float32) + (p[:3, 3] - centre).astype(np.float32)
+            for c, p in zip(clouds, poses, strict=True)
+        ]
+        colours = [
+            np.broadcast_to(np.array(display.scan_color(k), np.uint8), (len(c), 3)) for k, c in enumerate(clouds)
+        ]
+        return np.concatenate(world).astype(np.float32), np.concatenate(colours), centre
+
     def points_shown(self, levels: Sequence[int]) -> int:
         return points_at(self.levels.level_points, levels)
 

@@ -39,6 +39,7 @@ class SceneStream(ViewCore):
         self.pose_updates = 0
         self.client_seen = threading.Event()
         self.detail: DetailStream | None = None  # the scans' levels of detail, once loaded
+        self.coarse_node: Any = None  # the whole map's first look, until the scans' own nodes arrive
 
     def load(self) -> None:
         try:
@@ -78,29 +79,37 @@ class SceneStream(ViewCore):
         """(Re)send every scan at the levels of detail the camera calls for within the budget
         (:mod:`app.view.detail_stream`): the only time every scan's points go over the wire.
 
-        Two passes when the budget is above :data:`display.COARSE_BUDGET`: first every scan at the
-        levels that fit the coarse budget, so the whole map is on screen after one cheap frame
-        (without a GPU a frame costs ~2 µs per point), then at the full budget, replacing the
-        coarse points. Each pass is one atomic batch, so a browser draws the map once per pass,
-        complete, rather than redrawing a growing map after each scan. (Sending the full budget in
-        one pass was tried: its larger message reaches a busy browser seconds later than the
-        coarse one, and the full frame came no sooner.)
+        On the first pass, when the budget is above :data:`display.COARSE_BUDGET`, the whole map
+        first goes at the levels that fit the coarse budget as *one* point cloud in world
+        coordinates (:meth:`DetailStream.coarse_map`), so it is on screen after one message and one
+        cheap frame (without a GPU a frame costs ~2 µs per point; and each scene node costs the
+        server ~2 ms to make, seconds for a thousand scans). The scans' own nodes at the full budget
+        replace it in one atomic batch, so a browser draws the map once per pass, complete, rather
+        than redrawing a growing map after each scan.
         """
         assert self.detail is not None
         budget = int(self.controls.budget.value)
-        self.coarse_points, coarse_sent = 0, 0.0
-        if budget > display.COARSE_BUDGET and self.detail.total_points > display.COARSE_BUDGET:
-            self._show_levels(self.detail.choose(display.COARSE_BUDGET, self.state.session.poses()), replace=True)
+        self.coarse_points = 0
+        first = not self.nodes
+        if first and budget > display.COARSE_BUDGET and self.detail.total_points > display.COARSE_BUDGET:
+            poses = self.state.session.poses()
+            points, colours, centre = self.detail.coarse_map(self.detail.choose(display.COARSE_BUDGET, poses), poses)
+            self.coarse_node = self.server.scene.add_point_cloud(
+                "/coarse_map",
+                points,
+                colours,
+                point_size=float(self.controls.point_size.value),
+                point_shading="flat",
+                position=centre,
+            )
             coarse_sent = time.monotonic()
-            self.coarse_points = sum(len(p) for p in self.local)
+            self.coarse_points = len(points)
             self.controls.status.content = (
-                f"**{self.state.session.name}** · {len(self.local)} scans · coarse view "
+                f"**{self.state.session.name}** · {len(poses)} scans · coarse view "
                 f"({self.coarse_points:,} points), loading full detail…"
             )
-            self.draw_graph()
             self._let_browsers_draw_coarse(coarse_sent)
-        poses = self.poses if self.coarse_points else self.state.session.poses()
-        self._show_levels(self.detail.choose(budget, poses), replace=not self.coarse_points)
+        self._show_levels(self.detail.choose(budget, self.state.session.poses()), replace=True)
         self.draw_graph()
         self.update_status()
 
@@ -148,6 +157,9 @@ class SceneStream(ViewCore):
         does not work either: viser drops a queued "hidden" when "shown" follows.)
         """
         with self.server.atomic():
+            if self.coarse_node is not None:  # the first look at the whole map gives way to the scans
+                self.coarse_node.remove()
+                self.coarse_node = None
             if replace:
                 for node in self.nodes:
                     node.remove()
