@@ -270,3 +270,20 @@ def test_a_reopened_view_reads_the_levels_of_the_first_open_without_recomputing(
 
 def _never_recomputed(*args, **kwargs):  # type: ignore[no-untyped-def]
     raise AssertionError("the levels of detail were recomputed")
+
+
+def test_a_smaller_budget_coarsens_the_map_and_a_picked_scan_is_shown_in_full(corridor_view):
+    view = corridor_view
+    detail = view.detail
+    full = [len(p) for p in view.local]
+    assert full == [detail.levels.level_points[k][-1] for k in range(3)]  # 60k points: all fit the budget
+    with view.lock:
+        view.controls.budget.value = 10_000
+    detail.refresh()
+    coarse = [len(p) for p in view.local]
+    assert sum(coarse) <= 10_000 and all(c < f for c, f in zip(coarse, full, strict=True))
+    view.select({1: (255, 255, 255)})
+    detail.refresh()
+    assert len(view.local[1]) == full[1]  # picked for editing: every point
+    assert [len(p) for p in view.local] == [detail.levels.level_points[k][lv] for k, lv in enumerate(detail.shown)]
+    assert view.nodes[1].colors.tolist() == [255, 255, 255]  # the resent node keeps the pick colour

@@ -44,7 +44,6 @@ class DetailStream:
         self.camera: np.ndarray | None = None  # the position of the camera that moved last
         self.updates = 0  # passes of the follower that sent scans (tests and benchmarks watch it)
         self._moved = threading.Event()
-        self._last_move = 0.0
         self._thread: threading.Thread | None = None
 
     @property
@@ -97,7 +96,6 @@ class DetailStream:
 
     def _camera_moved(self, camera: viser.CameraHandle) -> None:
         self.camera = np.asarray(camera.position, dtype=np.float64)
-        self._last_move = camera.update_timestamp
         self._moved.set()
 
     def _run(self) -> None:

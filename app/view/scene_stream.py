@@ -47,8 +47,9 @@ class SceneStream(ViewCore):
             levels = session_levels(
                 session,
                 lambda: self.state.sequence(lambda d, t: self._progress("Reading scans", d, t)).scans,
-                lambda done: self._progress("Levels of detail", done, len(session.poses())),
+                lambda done: self._progress("Levels of detail", done, len(self.state.sequence())),
             )
+            # scans picked for editing (the colouring part's ``selected``) are shown in full
             self.detail = DetailStream(self, levels, lambda: getattr(self, "selected", {}).keys())
             budget = int(session.config.engine.get("display_budget", display.DEFAULT_BUDGET))
             self.controls.budget.value = budget  # type: ignore[misc]
