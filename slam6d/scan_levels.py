@@ -29,7 +29,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from slam6d.scan import Scan
-from slam6d.scan_store import ScanStore
+from slam6d.scan_store import ScanStore, ScanStoreError
 from slam6d.session import CACHE_DIR, Session
 
 __all__ = ["FIRST_LEVEL", "LEVEL_STEP", "ScanLevels", "level_sizes", "progressive_order", "session_levels"]
@@ -136,7 +136,7 @@ class ScanLevels:
             return None
         try:
             store = ScanStore(directory, budget=1)  # prefix reads only: nothing is kept in its cache
-        except Exception:
+        except ScanStoreError:  # damaged (e.g. cut short by a full disk): rebuilt like a stale one
             return None
         if store.extra.get("levels_fingerprint") != _key(fingerprint):
             return None

@@ -98,3 +98,11 @@ def test_scans_asked_for_in_full_are_full_and_paid_from_the_budget() -> None:
 def test_choice_of_one_level_scans(scans: int) -> None:
     sizes = [[40]] * scans  # scans smaller than the first level have one level: all of them
     assert choose_levels(sizes, np.ones(scans), 10) == [0] * scans
+
+
+def test_a_damaged_level_store_is_not_opened(tmp_path: Path) -> None:
+    scans = [Scan(np.random.default_rng(1).normal(0, 5, (500, 3)), np.eye(4), name="s0")]
+    ScanLevels.build(tmp_path / "levels", iter(scans), "sources")
+    points = tmp_path / "levels" / "points.f32"
+    points.write_bytes(points.read_bytes()[:-12])  # one point short: cut off while writing
+    assert ScanLevels.open(tmp_path / "levels", "sources") is None
