@@ -1,4 +1,4 @@
-"""What the 3D view draws: point budget, float16 safety, residual colouring, graph segments."""
+"""What the 3D view draws: levels within the budget, float16 safety, residual colouring, graph segments."""
 
 from __future__ import annotations
 

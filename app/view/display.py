@@ -1,4 +1,4 @@
-"""What the 3D view draws, computed without any viewer: point budget, colours, graph lines.
+"""What the 3D view draws, computed without any viewer: point budgets, colours, graph lines.
 
 Scans are drawn in their own frame with the pose on the scene node, so the points are sent once
 and a pose change costs a few bytes. Local coordinates stay small, which is what makes float16
