@@ -68,6 +68,12 @@ def serve_parser() -> argparse.ArgumentParser:
         default=[],
         help="a host name teammates use to reach this server (repeatable; IP addresses always work)",
     )
+    parser.add_argument(
+        "--scheduler",
+        default=None,
+        help="run the parallel stages of registration and relaxation jobs on Dask: local:N starts N worker"
+        " processes here, tcp://HOST:PORT joins a running scheduler (as slam6d run --scheduler)",
+    )
     return parser
 
 
@@ -158,6 +164,14 @@ def serve(args: argparse.Namespace) -> None:
             message = message.replace(field_name, flag)
         print(f"error: {message}", file=sys.stderr)
         sys.exit(2)
+    if args.scheduler is not None:
+        from slam6d.scheduler import SchedulerError, local_workers
+
+        try:
+            local_workers(args.scheduler)
+        except SchedulerError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            sys.exit(2)
     app = create_app(
         args.sessions_dir,
         max_upload_mb=args.max_upload_mb,
@@ -166,6 +180,7 @@ def serve(args: argparse.Namespace) -> None:
         data_root=args.data_root,
         names=args.server_name,
         limits=limits,
+        scheduler=args.scheduler,
     )
     shown = "127.0.0.1" if args.host in ("0.0.0.0", "::") else args.host
     ids = app.state.workbench.session_ids()

@@ -54,7 +54,7 @@ def registration_job(workbench: Workbench, session_id: str, author: str, paramet
     def work(progress: Progress, cancel: Cancel) -> dict[str, Any]:
         sequence = working_copy(state.sequence(lambda d, t: progress("reading scans", d, t)))
         base = state.session.revision  # the revision the run starts from (the scans follow the head)
-        runner = pipeline.Pipeline(sequence, config)
+        runner = pipeline.Pipeline(sequence, config, scheduler=workbench.scheduler())
         recorder = TraceRecorder()
         try:
             report = recorder.attach(runner).run(progress, cancel)

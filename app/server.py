@@ -72,12 +72,15 @@ def create_app(
     data_root: Path | None = None,
     names: Iterable[str] = (),
     limits: ResourceLimits | None = None,
+    scheduler: str | None = None,
 ) -> FastAPI:
     """``viewers=False`` leaves out the 3D views (REST-only tests need no viser servers).
 
     ``bind_host`` is the address the server listens on: off loopback, tokens are required (unless
     ``require_token`` says otherwise) and folder sessions only come from ``data_root``. ``limits``
-    bounds running jobs, opened sessions' memory, idle 3D views and parse time.
+    bounds running jobs, opened sessions' memory, idle 3D views and parse time. ``scheduler``
+    (``local:N`` or ``tcp://HOST:PORT``): where registration and relaxation jobs run their parallel
+    stages (:meth:`app.workbench.Workbench.scheduler`).
     """
     shared = not is_loopback(bind_host)
     workbench = Workbench(
@@ -85,6 +88,7 @@ def create_app(
         max_upload_bytes=max_upload_mb * 1024 * 1024,
         data_root=DataRoot(data_root, shared),
         limits=limits,
+        scheduler=scheduler,
     )
     pages = static_dir()
 
@@ -103,7 +107,7 @@ def create_app(
         version="0.1.0",
     )
     app.state.workbench = workbench
-    app.state.on_shutdown = []
+    app.state.on_shutdown = [workbench.close_scheduler]
     install_error_handlers(app)
     app.add_middleware(
         RequestLimits,

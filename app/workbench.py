@@ -31,6 +31,7 @@ from slam6d.geometry import Matrix
 from slam6d.journal import Change, Revision, StaleRevisionError
 from slam6d.repair import JOB_ENTRY, UNFINISHED_JOB_EVENTS, SessionCheck, check_session, job_records
 from slam6d.scan import ScanSequence
+from slam6d.scheduler import Scheduler, local_workers, open_scheduler
 from slam6d.session import SESSION_FILE, Session, reserve_session_folder
 
 log = logging.getLogger("slam6d.workbench")
@@ -119,7 +120,15 @@ class Workbench:
         max_upload_bytes: int = 512 * 1024 * 1024,
         data_root: DataRoot | None = None,
         limits: ResourceLimits | None = None,
+        scheduler: str | None = None,
     ) -> None:
+        """``scheduler``: where the jobs that support it (registration, relaxation) run their parallel
+        stages, as ``slam6d run --scheduler`` takes it (``local:N``, ``tcp://HOST:PORT``); None: here."""
+        if scheduler is not None:
+            local_workers(scheduler)  # a bad address is refused at start, not at the first job
+        self.scheduler_spec = scheduler
+        self._scheduler: Scheduler | None = None
+        self._scheduler_lock = threading.Lock()
         self.sessions_dir = Path(sessions_dir)
         self.data_root = data_root or DataRoot(None, shared=False)
         self.sessions_dir.mkdir(parents=True, exist_ok=True)
@@ -149,6 +158,24 @@ class Workbench:
             if check.error:
                 log.error("session %s cannot open: %s", session_id, check.error)
         return self.checks
+
+    def scheduler(self) -> Scheduler | None:
+        """The engine's scheduler (:mod:`slam6d.scheduler`) for the jobs, opened at the first job that asks
+        and then shared by all (a ``local:N`` cluster starts once); None without ``--scheduler``, so
+        nothing of Dask is started or imported."""
+        if self.scheduler_spec is None:
+            return None
+        with self._scheduler_lock:
+            if self._scheduler is None:
+                self._scheduler = open_scheduler(self.scheduler_spec)
+            return self._scheduler
+
+    def close_scheduler(self) -> None:
+        """Close the scheduler's client (and the local cluster it started) when the server stops."""
+        with self._scheduler_lock:
+            if self._scheduler is not None:
+                self._scheduler.close()
+                self._scheduler = None
 
     def _record_job(self, job: Job, event: str) -> None:
         """Journal a job's start and end, so one cut short by a crash is found and shown after a restart."""

@@ -5,14 +5,18 @@ Targets: 77 scans x 100k points (every scan) on screen within 3 s of opening the
 updates at >= 20 per second.
 
     .venv/bin/python benchmarks/viewer.py [--scans 77] [--shots 149000] [--rate 30] [--seconds 5]
+    .venv/bin/python benchmarks/viewer.py --world campus --scans 1000 --shots 200000 --seed 3   # 100M points
 
-The session comes from ``slam6d.simulate`` (``--shots`` laser shots per scan; about two thirds
-return, so 149,000 shots give ~100k points per scan). The scan files and their parsed cache are
-kept in ``--cache`` (default: a folder under the system temp dir) between runs; each run opens a
-fresh session on them, with the parsed cache already filled, as a session reopened on the
-workbench is; the display point selection is remembered too after a budget's first run (the
-output says whether the view was opened for the first time). The viewer itself starts on the
-request for the page, so its work (reading the cache, point budget, sending) is inside the timed span.
+The session comes from ``slam6d.simulate`` (``--shots`` laser shots per scan: about two thirds return
+in the loop world and one half in the campus, so 149,000 shots give ~100k points per scan there and
+200,000 here), or from ``--scans-dir`` (scans written before, e.g. by ``slam6d simulate``). The scans,
+a session over them opened once (parsed cache, revision 0, levels of detail: the one-time work of a
+first open, timed and printed when done) are kept in ``--cache`` (default: a folder under the system
+temp dir) between runs; each run opens a fresh session folder with that journal and cache, as a
+session reopened on the workbench is. The viewer itself starts on the request for the page, so its
+work (reading the levels, choosing them, sending) is inside the timed span. The workbench server runs
+in this process, so the resident memory printed is the server's (the first open's work is done in a
+child process and does not count).
 
 What is measured, in the browser (a script injected into the viewer's frame before it loads):
 
@@ -24,7 +28,8 @@ What is measured, in the browser (a script injected into the viewer's frame befo
   The canvas keeps its drawing buffer (viser sets ``preserveDrawingBuffer``), so this reads the
   frame just drawn.
 
-The viewer sends the map in two passes (every scan coarse, then every scan at the full budget).
+The viewer sends the map in two passes (every scan at the levels of detail that fit the coarse budget,
+then at the full budget).
 Whole map first drawn = from ``page.goto`` until the end of the first frame that drew every point
 of the coarse pass (every scan received and drawn); full budget drawn = until the first frame that
 drew every point of the full pass. A single-pass view (a budget at or under the coarse one) gives
@@ -41,6 +46,7 @@ the viewer shows the latest pose).
 from __future__ import annotations
 
 import argparse
+import multiprocessing
 import os
 import re
 import shutil
@@ -55,9 +61,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from app.view import display as view_display  # noqa: E402
 from slam6d.geometry import pose_from_xyzrpy  # noqa: E402
-from slam6d.session import CACHE_DIR, Session  # noqa: E402
+from slam6d.scan_levels import LEVELS_DIR, ScanLevels, session_levels  # noqa: E402
+from slam6d.session import CACHE_DIR, JOURNAL_FILE, Session  # noqa: E402
 from slam6d.simulate import SimulationConfig, simulate_session  # noqa: E402
 from tests.browser.conftest import CHROMIUM_ARGS, LiveServer, map_pixels  # noqa: E402
 
@@ -117,19 +123,53 @@ def load_average() -> str:
     return " ".join(f"{x:.2f}" for x in os.getloadavg())
 
 
-def simulated_scans(cache: Path, scans: int, shots: int, seed: int) -> tuple[Path, Path]:
-    """Scan files and a parsed cache of them, made once: (scans folder, scans.npz)."""
-    folder = cache / f"{scans}x{shots}-seed{seed}"
-    scans_dir, parsed = folder / "scans", folder / "parsed" / "session" / CACHE_DIR / "scans.npz"
-    if not parsed.exists():
+def simulated_scans(cache: Path, scans: int, shots: int, seed: int, world: str, scans_dir: Path | None) -> Path:
+    """A session over the scans, opened once so its parsed cache, journal and levels of detail exist;
+    made once per set of scans (in a child process, so this one never holds the scans: its memory
+    is the workbench's). Returns the session folder."""
+    name = scans_dir.resolve().name if scans_dir else f"{world}-{scans}x{shots}-seed{seed}"
+    folder = cache / name
+    parsed = folder / "parsed" / "session"
+    if not (parsed / CACHE_DIR / LEVELS_DIR).is_dir():
         t0 = time.perf_counter()
         if folder.exists():
             shutil.rmtree(folder)
-        simulate_session(scans_dir, SimulationConfig(scans=scans, points_per_scan=shots, seed=seed))
-        session = Session.create(folder / "parsed" / "session", "parse", scans_dir.resolve())
-        session.load_sequence()
-        print(f"simulated and parsed {scans} scans in {time.perf_counter() - t0:.1f} s into {folder}")
-    return scans_dir.resolve(), parsed
+        source = scans_dir.resolve() if scans_dir else folder / "scans"
+        if scans_dir is None:
+            config = SimulationConfig(scans=scans, points_per_scan=shots, seed=seed, world=world)
+            simulate_session(source, config)
+        Session.create(parsed, "parse", source)
+        child = multiprocessing.get_context("spawn").Process(target=open_once, args=(parsed,))
+        child.start()
+        child.join()
+        if child.exitcode != 0:
+            raise SystemExit(f"preparing {parsed} failed")
+        print(f"prepared {source} (parsed, levels of detail) in {time.perf_counter() - t0:.1f} s into {folder}")
+    return parsed
+
+
+def open_once(folder: Path) -> None:
+    """What the first open of a session does once: parse the scans, store revision 0, order the levels."""
+    session = Session.open(folder)
+    t0 = time.perf_counter()
+    sequence = session.load_sequence()
+    t1 = time.perf_counter()
+    session_levels(session, lambda: sequence.scans)
+    print(f"parsed {len(sequence)} scans in {t1 - t0:.1f} s, levels of detail in {time.perf_counter() - t1:.1f} s")
+
+
+def reopened_session(parsed: Path, folder: Path, engine: dict[str, Any]) -> None:
+    """A new session folder over the same scans with the prepared journal and caches (hard links)."""
+    config = Session.open(parsed).config
+    Session.create(folder, "Benchmark", config.sources, config.format_name, config.frame, engine=engine)
+    shutil.copy(parsed / JOURNAL_FILE, folder / JOURNAL_FILE)
+    shutil.copytree(parsed / CACHE_DIR, folder / CACHE_DIR, copy_function=os.link)
+
+
+def memory_mb() -> tuple[float, float]:
+    """This process's resident memory now and at its peak (MB): the workbench server runs in it."""
+    fields = dict(line.split(":", 1) for line in Path("/proc/self/status").read_text().splitlines() if ":" in line)
+    return int(fields["VmRSS"].split()[0]) / 1024, int(fields["VmHWM"].split()[0]) / 1024
 
 
 def stream_poses(viewer: Any, index: int, rate: float, seconds: float) -> tuple[int, float]:
@@ -226,6 +266,13 @@ def main() -> None:
     parser.add_argument("--scans", type=int, default=77)
     parser.add_argument("--shots", type=int, default=149_000, help="laser shots per scan (~2/3 return)")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--world", default="loop", help="simulated world (slam6d simulate --world)")
+    parser.add_argument(
+        "--scans-dir",
+        type=Path,
+        default=None,
+        help="scans written before (e.g. by slam6d simulate) instead of simulating",
+    )
     parser.add_argument("--budget", type=int, default=None, help="display point budget (default: the viewer's)")
     parser.add_argument("--rate", type=float, default=30.0, help="pose updates sent per second")
     parser.add_argument("--seconds", type=float, default=5.0, help="how long poses are streamed")
@@ -238,19 +285,18 @@ def main() -> None:
 
     from playwright.sync_api import sync_playwright
 
-    scans_dir, parsed = simulated_scans(args.cache, args.scans, args.shots, args.seed)
+    parsed = simulated_scans(args.cache, args.scans, args.shots, args.seed, args.world, args.scans_dir)
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp) / "sessions"
         engine = {} if args.budget is None else {"display_budget": args.budget}
-        Session.create(root / SESSION_ID, "Benchmark", scans_dir, engine=engine)
-        (root / SESSION_ID / CACHE_DIR).mkdir()
-        shutil.copy(parsed, root / SESSION_ID / CACHE_DIR / "scans.npz")  # a session opened before
-        display = parsed.with_name(f"display-{args.budget or view_display.DEFAULT_BUDGET}.npz")
-        reopened = display.exists()  # its view too: the point selection is remembered
-        if reopened:
-            shutil.copy(display, root / SESSION_ID / CACHE_DIR / "display.npz")
-        total = sum(len(s) for s in Session.open(root / SESSION_ID).load_sequence().scans)
-        print(f"session: {args.scans} scans, {total:,} points")
+        reopened_session(parsed, root / SESSION_ID, engine)
+        levels = ScanLevels.open(
+            root / SESSION_ID / CACHE_DIR / LEVELS_DIR, Session.open(parsed).scan_cache().fingerprint()
+        )
+        assert levels is not None, "the prepared levels of detail do not match the scans"
+        total, count = levels.total_points, len(levels)
+        del levels
+        print(f"session: {count} scans, {total:,} points")
 
         with LiveServer(root) as server, sync_playwright() as playwright:
             context = playwright.chromium.launch_persistent_context(
@@ -274,8 +320,10 @@ def main() -> None:
                 f"full budget drawn: {first['full_map']:.2f} s, {first['points_shown']:,} of {total:,} points "
                 f"(viewer started {first['viewer_started']:.2f} s, ready {first['viewer_ready']:.2f} s; "
                 f"full-budget scans in the page {first['last_scan']:.2f} s; that frame took {first['frame_ms']:.0f} ms "
-                f"to draw; view {'reopened' if reopened else 'opened for the first time'}; load {load})"
+                f"to draw; session reopened: parsed scans and levels of detail cached; load {load})"
             )
+            rss, peak = memory_mb()
+            print(f"server process memory after the first view: {rss:,.0f} MB resident (peak {peak:,.0f} MB)")
             print(f"canvas covered by the map: {map_pixels(page):.0%}")
             if args.screenshot:
                 page.screenshot(path=str(args.screenshot))
@@ -287,9 +335,9 @@ def main() -> None:
                 f"{poses['drawn_per_s']:.1f} frames/s drew a new pose (median frame {poses['frame_ms']:.0f} ms, "
                 f"{poses['frame_points']:,} points; {'playing' if args.playback else 'full map'}; load {load})"
             )
+            rss, peak = memory_mb()
+            print(f"server process memory at the end: {rss:,.0f} MB resident (peak {peak:,.0f} MB)")
             context.close()
-        if not reopened and (root / SESSION_ID / CACHE_DIR / "display.npz").exists():
-            shutil.copy(root / SESSION_ID / CACHE_DIR / "display.npz", display)
         ok_map, ok_rate = first["whole_map"] <= 3.0, poses["arrived_per_s"] >= 20
         print(
             f"targets: whole map (every scan, coarse) drawn <= 3 s: {'met' if ok_map else 'NOT met'}; "

@@ -22,6 +22,7 @@ import threading
 from collections import OrderedDict
 from collections.abc import Callable, Iterable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -37,6 +38,7 @@ FloatArray = NDArray[np.float64]
 POINTS_FILE = "points.f32"
 INDEX_FILE = "index.json"
 _UNITS = {"": 1, "B": 1, "K": 10**3, "KB": 10**3, "M": 10**6, "MB": 10**6, "G": 10**9, "GB": 10**9, "T": 10**12}
+_INDEX_KEYS = ("counts", "poses", "has_pose", "names", "convention")
 _UNITS |= {"KIB": 2**10, "MIB": 2**20, "GIB": 2**30, "TB": 10**12}
 
 __all__ = ["ScanStore", "ScanStoreError", "parse_bytes", "store_sequence", "store_source"]
@@ -74,6 +76,7 @@ class ScanStore:
             self.has_pose: list[bool] = [bool(h) for h in index["has_pose"]]
             self.names: list[str] = [str(n) for n in index["names"]]
             self.convention = CONVENTIONS[index.get("convention", CANONICAL.name)]
+            self.extra: dict[str, Any] = {k: v for k, v in index.items() if k not in _INDEX_KEYS}
         except (OSError, ValueError, KeyError, TypeError) as exc:
             raise ScanStoreError(f"{index_path}: not a readable scan store index ({exc})") from exc
         self.offsets = np.concatenate([[0], np.cumsum(self.counts)])
@@ -91,9 +94,16 @@ class ScanStore:
         return len(self.counts)
 
     @staticmethod
-    def create(directory: Path | str, scans: Iterable[Scan], convention: FrameConvention = CANONICAL) -> Path:
+    def create(
+        directory: Path | str,
+        scans: Iterable[Scan],
+        convention: FrameConvention = CANONICAL,
+        extra: dict[str, Any] | None = None,
+    ) -> Path:
         """Write ``scans`` (consumed one at a time, so an iterator holds one scan at once) as a store;
-        ``convention`` is the frame of the source they were read from (poses written back use it)."""
+        ``convention`` is the frame of the source they were read from (poses written back use it).
+        ``extra`` goes into the index as well (what a store built for one purpose records about
+        itself, e.g. :mod:`slam6d.scan_levels`' fingerprint); read it back as :attr:`extra`."""
         out = Path(directory)
         out.mkdir(parents=True, exist_ok=True)
         counts, poses, has_pose, names = [], [], [], []
@@ -110,6 +120,7 @@ class ScanStore:
             "has_pose": has_pose,
             "names": names,
             "convention": convention.name,
+            **(extra or {}),
         }
         (out / INDEX_FILE).write_text(json.dumps(index))
         return out
@@ -147,6 +158,17 @@ class ScanStore:
         self.peak_bytes = max(self.peak_bytes, self.resident_bytes)
         self.loads += 1
         return points
+
+    def prefix(self, k: int, count: int) -> NDArray[np.float32]:
+        """The first ``count`` points of scan k as stored (float32), read from disk and not cached: the
+        levels of detail of :mod:`slam6d.scan_levels` are prefixes, read far more often than once."""
+        if not 0 <= k < len(self.counts):
+            raise IndexError(f"scan {k} is not in the store of {len(self.counts)} scans at {self.directory}")
+        count = min(max(int(count), 0), int(self.counts[k]))
+        raw = np.fromfile(
+            self.directory / POINTS_FILE, dtype=np.float32, count=count * 3, offset=int(self.offsets[k]) * 12
+        )
+        return raw.reshape(-1, 3)
 
     @staticmethod
     def holds(directory: Path | str) -> bool:

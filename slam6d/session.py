@@ -191,20 +191,23 @@ class Session:
 
     # -------------------------------------------------------------- scans
 
-    def load_sequence(self, progress: Callable[[int, int], None] | None = None) -> ScanSequence:
-        """Read the scans (from the cache when the sources are unchanged) with the current poses.
-
-        Creates revision 0 from the poses the source carried the first time it is called.
-        """
+    def scan_cache(self) -> ScanCache:
+        """The binary copy of the parsed scans; its fingerprint names the sources as they are now read."""
         options = ReadOptions(self.config.min_range, self.config.max_range)
-        cache = ScanCache(
+        return ScanCache(
             self.folder / CACHE_DIR / "scans.npz",
             self.source_paths(),
             self.config.format_name,
             self.config.convention,
             options,
         )
-        sequence = cache.load(progress)
+
+    def load_sequence(self, progress: Callable[[int, int], None] | None = None) -> ScanSequence:
+        """Read the scans (from the cache when the sources are unchanged) with the current poses.
+
+        Creates revision 0 from the poses the source carried the first time it is called.
+        """
+        sequence = self.scan_cache().load(progress)
         if self.journal.head is None:
             self.journal.commit_first(sequence.poses(), "system", "import", {"scans": len(sequence)})
         poses = self.poses()

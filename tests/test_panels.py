@@ -110,3 +110,34 @@ def test_a_failed_run_with_pieces_turns_the_component_colours_on_with_its_reason
         "**⚠ the relaxation stage failed (revision 1): the pose graph is disconnected. "
         "lum relaxation would find the graph disconnected: 2 components [0-1]; [2]"
     )
+
+
+def test_long_lists_are_paged() -> None:
+    from app.view.panels.paging import PAGE_ROWS, page_bounds
+
+    assert page_bounds(0, 1) == (0, 0, 1)
+    assert page_bounds(1000, 1) == (0, PAGE_ROWS, 40)
+    assert page_bounds(1001, 41) == (1000, 1001, 41)
+    assert page_bounds(1001, 99) == (1000, 1001, 41)  # past the end: the last page
+    assert page_bounds(30, 0) == (0, PAGE_ROWS, 2)
+
+
+def test_the_edge_list_of_a_long_trajectory_is_sent_a_page_at_a_time(tmp_path):
+    from app.view.panels.paging import PAGE_ROWS
+    from slam6d.session import Session
+    from slam6d.simulate import SimulationConfig, simulate_session
+
+    simulate_session(tmp_path / "scans", SimulationConfig(scans=60, points_per_scan=2000))
+    Session.create(tmp_path / "sessions" / "corridor", "Loop", tmp_path / "scans")
+    app = create_app(tmp_path / "sessions")
+    view = app.state.viewers.get("corridor")
+    assert view.ready.wait(60) and view.error is None
+    try:
+        edges = panel(view, "EdgesPanel")
+        edges.refresh()
+        assert len(edges.edge.options) == PAGE_ROWS and edges.edge.options[0].startswith("0: 0–1")
+        edges.edge_pages.number.value = 3  # the last page: edges 50..58
+        edges.refresh()
+        assert len(edges.edge.options) == 59 - 2 * PAGE_ROWS and edges.edge.options[-1].startswith("58: 58–59")
+    finally:
+        app.state.viewers.stop_all()

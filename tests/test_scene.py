@@ -1,4 +1,4 @@
-"""What the 3D view draws: point budget, float16 safety, residual colouring, graph segments."""
+"""What the 3D view draws: levels within the budget, float16 safety, residual colouring, graph segments."""
 
 from __future__ import annotations
 
@@ -9,59 +9,6 @@ from app.view import display
 from app.view.panels.edges import EdgesPanel
 from app.view.picking import pick_scan
 from slam6d.geometry import pose_from_xyzrpy
-
-
-def test_budget_selection_keeps_the_map_within_budget_and_uses_real_points():
-    rng = np.random.default_rng(0)
-    clouds = [rng.uniform(-10, 10, (50_000, 3)) for _ in range(4)]
-    selection = display.budget_selection(clouds, budget=20_000, voxel_size=0.05)
-    assert sum(len(s) for s in selection) <= 20_000
-    assert all(len(s) == 5_000 for s in selection)  # dense clouds fill their share
-    assert all(np.all(np.diff(s) > 0) for s in selection)  # real, distinct points in scan order
-    # a coarse voxel gives fewer points than the cap: one per occupied voxel
-    coarse = display.budget_selection(clouds, budget=1_000_000, voxel_size=5.0)
-    assert all(len(s) <= 64 for s in coarse)
-
-
-def test_coarse_selection_covers_every_scan_within_the_coarse_budget():
-    rng = np.random.default_rng(3)
-    clouds = [rng.uniform(-10, 10, (n, 3)) for n in (60_000, 30_000, 500)]
-    coarse = display.coarse_selection(clouds, budget=30_000)
-    assert sum(len(s) for s in coarse) <= 30_000
-    assert [len(s) for s in coarse] == [10_000, 10_000, 500]  # every scan is in the first look, small ones whole
-    assert all(np.all(np.diff(s) > 0) and s[-1] < len(c) for s, c in zip(coarse, clouds, strict=True))
-    # spread over the whole scan, not its first points: the coarse map has the same extent
-    np.testing.assert_allclose(clouds[0][coarse[0]].min(axis=0), clouds[0].min(axis=0), atol=0.1)
-    np.testing.assert_allclose(clouds[0][coarse[0]].max(axis=0), clouds[0].max(axis=0), atol=0.1)
-
-
-def test_cached_budget_selection_reuses_only_for_the_same_scans(tmp_path, monkeypatch):
-    rng = np.random.default_rng(2)
-    clouds = [rng.uniform(-10, 10, (20_000, 3)) for _ in range(3)]
-    cache = tmp_path / "cache" / "display.npz"
-    assert display.remembered_selection(cache, clouds, budget=9_000, voxel_size=0.05) is None
-    first = display.cached_budget_selection(cache, clouds, budget=9_000, voxel_size=0.05)
-    assert cache.exists()
-    remembered = display.remembered_selection(cache, clouds, budget=9_000, voxel_size=0.05)
-    assert remembered is not None and all(np.array_equal(a, b) for a, b in zip(first, remembered, strict=True))
-    assert display.remembered_selection(cache, clouds, budget=8_000, voxel_size=0.05) is None
-    expected = display.budget_selection(clouds, budget=9_000, voxel_size=0.05)
-    assert all(np.array_equal(a, b) for a, b in zip(first, expected, strict=True))
-
-    def no_recompute(*args, **kwargs):  # type: ignore[no-untyped-def]
-        raise AssertionError("recomputed although nothing changed")
-
-    monkeypatch.setattr(display, "budget_selection", no_recompute)
-    again = display.cached_budget_selection(cache, clouds, budget=9_000, voxel_size=0.05)
-    assert all(np.array_equal(a, b) for a, b in zip(again, expected, strict=True))
-    monkeypatch.undo()
-    moved = [clouds[0], clouds[1] + 1.0, clouds[2]]  # one scan changed: its choice must be recomputed
-    changed = display.cached_budget_selection(cache, moved, budget=9_000, voxel_size=0.05)
-    assert all(np.array_equal(a, b) for a, b in zip(changed, display.budget_selection(moved, 9_000, 0.05), strict=True))
-    smaller = display.cached_budget_selection(cache, moved, budget=3_000, voxel_size=0.05)
-    assert sum(len(s) for s in smaller) <= 3_000
-    cache.write_bytes(b"damaged")
-    assert sum(len(s) for s in display.cached_budget_selection(cache, moved, budget=3_000, voxel_size=0.05)) <= 3_000
 
 
 def test_far_from_origin_local_points_are_never_sent_as_float16():
@@ -285,29 +232,6 @@ def test_stepper_play_enters_playback_and_pause_leaves_it(corridor_view):
     assert view.focus is None
 
 
-def _never_recomputed(*args, **kwargs):  # type: ignore[no-untyped-def]
-    raise AssertionError("the display selection was recomputed")
-
-
-def test_a_reopened_view_reuses_the_display_selection_of_the_first_open(tmp_path, monkeypatch):
-    """The first open reads the scan files (float64), later ones the parsed cache (float32): same key."""
-    from app.resources import ResourceLimits
-    from app.server import create_app
-    from tests.session_fixtures import corridor_session
-
-    corridor_session(tmp_path / "sessions", scans=3, points=20_000)
-    shown = []
-    for attempt in range(2):
-        if attempt:
-            monkeypatch.setattr(display, "budget_selection", _never_recomputed)
-        app = create_app(tmp_path / "sessions", limits=ResourceLimits(viewer_grace_s=3600))
-        view = app.state.viewers.get("corridor")
-        assert view.ready.wait(30) and view.error is None
-        shown.append([p.copy() for p in view.local])
-        app.state.viewers.stop_all()
-    assert all(np.array_equal(a, b) for a, b in zip(*shown, strict=True))
-
-
 def test_edge_residual_tells_aligned_sparse_scans_from_misaligned_ones():
     """Sparse scans: closest-point distances grow with the point spacing, the plane residual does not."""
     from slam6d.icp import ICPConfig
@@ -324,3 +248,44 @@ def test_edge_residual_tells_aligned_sparse_scans_from_misaligned_ones():
     aligned, off = residual_summary(models, shown, [(0, 1), (1, 2)]).edges
     assert aligned["rms"] > 0.1  # spacing alone: closest points of aligned sparse scans are far apart
     assert aligned["plane"] < 0.01 and off["plane"] > 0.025 and off["plane"] > 3 * aligned["plane"]
+
+
+def test_a_reopened_view_reads_the_levels_of_the_first_open_without_recomputing(tmp_path, monkeypatch):
+    """The first open orders every scan into levels of detail once; later opens only read prefixes."""
+    from app.resources import ResourceLimits
+    from app.server import create_app
+    from slam6d import scan_levels
+    from tests.session_fixtures import corridor_session
+
+    corridor_session(tmp_path / "sessions", scans=3, points=20_000)
+    shown = []
+    for attempt in range(2):
+        if attempt:
+            monkeypatch.setattr(scan_levels, "progressive_order", _never_recomputed)
+        app = create_app(tmp_path / "sessions", limits=ResourceLimits(viewer_grace_s=3600))
+        view = app.state.viewers.get("corridor")
+        assert view.ready.wait(30) and view.error is None
+        shown.append([p.copy() for p in view.local])
+        app.state.viewers.stop_all()
+    assert all(np.array_equal(a, b) for a, b in zip(*shown, strict=True))
+
+
+def _never_recomputed(*args, **kwargs):  # type: ignore[no-untyped-def]
+    raise AssertionError("the levels of detail were recomputed")
+
+
+def test_a_smaller_budget_coarsens_the_map_and_a_picked_scan_is_shown_in_full(corridor_view):
+    view = corridor_view
+    detail = view.detail
+    full = [len(p) for p in view.local]
+    assert full == [detail.levels.level_points[k][-1] for k in range(3)]  # 60k points: all fit the budget
+    with view.lock:
+        view.controls.budget.value = 10_000
+    detail.refresh()
+    coarse = [len(p) for p in view.local]
+    assert sum(coarse) <= 10_000 and all(c < f for c, f in zip(coarse, full, strict=True))
+    view.select({1: (255, 255, 255)})
+    detail.refresh()
+    assert len(view.local[1]) == full[1]  # picked for editing: every point
+    assert [len(p) for p in view.local] == [detail.levels.level_points[k][lv] for k, lv in enumerate(detail.shown)]
+    assert view.nodes[1].colors.tolist() == [255, 255, 255]  # the resent node keeps the pick colour

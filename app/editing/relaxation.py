@@ -86,6 +86,7 @@ class Relaxation:
                 cancel=cancel,
                 edge_progress=lambda done, total: progress(f"{method}: matching edges", done, total),
                 links=sequential_links(len(poses), revision.graph),
+                scheduler=context.workbench.scheduler(),
             )
             # held scans are no part of the change: someone may move them meanwhile without a conflict
             relaxed = [poses[k] if k in fixed else pose for k, pose in enumerate(result.poses)]

@@ -1,4 +1,4 @@
-"""What the 3D view draws, computed without any viewer: point budget, colours, graph lines.
+"""What the 3D view draws, computed without any viewer: point budgets, colours, graph lines.
 
 Scans are drawn in their own frame with the pose on the scene node, so the points are sent once
 and a pose change costs a few bytes. Local coordinates stay small, which is what makes float16
@@ -8,9 +8,7 @@ safe; world coordinates of a map far from the origin would quantise to centimetr
 from __future__ import annotations
 
 import colorsys
-import hashlib
 from collections.abc import Sequence
-from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
@@ -38,77 +36,6 @@ def display_indices(points: NDArray[np.float64], voxel_size: float, cap: int) ->
     if len(keep) > cap:
         keep = keep[np.linspace(0, len(keep) - 1, max(cap, 1)).astype(np.int64)]
     return keep
-
-
-def budget_selection(
-    clouds: Sequence[NDArray[np.float64]], budget: int = DEFAULT_BUDGET, voxel_size: float = 0.05
-) -> list[NDArray[np.int64]]:
-    """Per-scan indices so the whole map stays within ``budget`` points.
-
-    Each scan gets an equal share; what a sparse scan leaves unused is not redistributed, which
-    keeps the choice independent of the other scans (a scan's display never changes when another
-    scan is added).
-    """
-    cap = max(1, budget // max(1, len(clouds)))
-    return [display_indices(c, voxel_size, cap) for c in clouds]
-
-
-def coarse_selection(clouds: Sequence[NDArray[np.float64]], budget: int = COARSE_BUDGET) -> list[NDArray[np.int64]]:
-    """Per-scan indices for the quick first look at the whole map: an even thinning, no voxel pass.
-
-    The coarse map exists to be on screen before the full selection is ready, so it must not wait
-    for the voxel reduction of every point (the slow part of a first open); it is replaced soon after.
-    """
-    return budget_selection(clouds, budget, voxel_size=0.0)
-
-
-def _selection_key(clouds: Sequence[NDArray[np.float64]], budget: int, voxel_size: float) -> str:
-    digest = hashlib.sha256(f"{budget}|{voxel_size}|{[len(c) for c in clouds]}".encode())
-    for cloud in clouds:
-        # float32: the same scans read from their files (float64) or from the parsed cache (float32) match
-        digest.update(np.ascontiguousarray(cloud[:: max(1, len(cloud) // 64)], dtype=np.float32).tobytes())
-    return digest.hexdigest()
-
-
-def remembered_selection(
-    cache_file: Path, clouds: Sequence[NDArray[np.float64]], budget: int = DEFAULT_BUDGET, voxel_size: float = 0.05
-) -> list[NDArray[np.int64]] | None:
-    """The selection :func:`cached_budget_selection` stored for these clouds, budget and voxel, or None.
-
-    The key hashes the point counts and a strided sample of the coordinates, so changed scans
-    never reuse a stale choice; a missing or damaged file is simply not there.
-    """
-    try:
-        with np.load(cache_file, allow_pickle=False) as data:
-            if str(data["key"]) == _selection_key(clouds, budget, voxel_size):
-                return np.split(data["indices"], np.cumsum(data["counts"])[:-1])
-    except (OSError, ValueError, KeyError):
-        pass
-    return None
-
-
-def cached_budget_selection(
-    cache_file: Path, clouds: Sequence[NDArray[np.float64]], budget: int = DEFAULT_BUDGET, voxel_size: float = 0.05
-) -> list[NDArray[np.int64]]:
-    """:func:`budget_selection`, remembered in ``cache_file`` for the same clouds, budget and voxel.
-
-    Voxel-reducing every point of a large session is most of the time a reopened session's view
-    needs before it can send anything (about 0.7 s for 7.7M points).
-    """
-    remembered = remembered_selection(cache_file, clouds, budget, voxel_size)
-    if remembered is not None:
-        return remembered
-    selection = budget_selection(clouds, budget, voxel_size)
-    cache_file.parent.mkdir(parents=True, exist_ok=True)
-    tmp = cache_file.with_suffix(".tmp.npz")
-    np.savez(
-        tmp,
-        key=np.array(_selection_key(clouds, budget, voxel_size)),
-        counts=np.array([len(s) for s in selection], dtype=np.int64),
-        indices=np.concatenate(selection) if selection else np.zeros(0, np.int64),
-    )
-    tmp.replace(cache_file)
-    return selection
 
 
 def precision_for(points: NDArray[np.floating]) -> str:

@@ -3,7 +3,7 @@
 The session's live 3D view (:mod:`app.view.session_view`) shows the head to everyone on it; a
 permalink to an older revision must show that revision to the browser that opened it without
 moving anyone else's map. Such a browser's 3D view therefore connects to a :class:`RevisionView`:
-its own viser server drawing the scans (a coarse display selection, the live view's first pass)
+its own viser server drawing the scans (at the levels of detail of the live view's first look)
 at the revision's poses and its pose-graph edges. Everything is added to each browser's *own*
 scene (``client.scene``), so each browser on it has its own colour mode and selection marker (:mod:`app.view.selection_marker`).
 
@@ -25,9 +25,11 @@ import viser
 
 from app.errors import EditError
 from app.view import display
+from app.view.detail_levels import choose_levels
 from app.view.presence import presence_of
 from app.workbench import SessionState, Workbench
 from slam6d.geometry import Matrix, rotation_to_quaternion
+from slam6d.scan_levels import session_levels
 from slam6d.session_graph import graph_edge_list
 
 IDLE_STOP = 120.0  # s without a browser before an old revision's view is stopped
@@ -54,11 +56,11 @@ class RevisionView:
         found = state.session.get_revision(revision)
         self.poses: list[Matrix] = [np.asarray(p, dtype=np.float64) for p in found.poses]
         self.edges = [(int(e["i"]), int(e["j"]), str(e["kind"])) for e in graph_edge_list(len(self.poses), found.graph)]
-        sequence = state.sequence()
-        clouds = [s.points for s in sequence.scans]
-        self.local = [
-            c[idx].astype(np.float32) for c, idx in zip(clouds, display.coarse_selection(clouds), strict=True)
-        ]
+        # the live view's first look: every scan at the levels of detail that fit the coarse budget,
+        # read as prefixes of the session's level store (built by the live view, or here if absent)
+        levels = session_levels(state.session, lambda: state.sequence().scans)
+        chosen = choose_levels(levels.level_points, np.ones(len(levels)), display.COARSE_BUDGET)
+        self.local = [levels.points(k, level) for k, level in enumerate(chosen)]
         self.bounds = [(c.min(axis=0), c.max(axis=0)) if len(c) else (np.zeros(3), np.zeros(3)) for c in self.local]
         self._residuals: list[np.ndarray] | None = None
         self._components = _components(len(self.poses), [(i, j) for i, j, _ in self.edges])

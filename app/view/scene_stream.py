@@ -1,6 +1,6 @@
-"""Scene streaming: the session's scans sent to the browsers at a point budget, coarse first, then moved by pose.
+"""Scene streaming: the session's scans sent to the browsers as levels of detail within a point budget, coarse first, then moved by pose.
 
-Scans are sent (display-reduced to a point budget) in their own frame, so the points go over the
+Scans are sent (at levels of detail read from the session's cache) in their own frame, so the points go over the
 wire once and moving a scan only changes its scene node's pose. This is the only place point data
 is sent; everything else (colours, playback, the graph) changes nodes that are already there.
 """
@@ -16,9 +16,10 @@ import numpy as np
 
 from app.view import display
 from app.view.core import ViewCore, place
+from app.view.detail_stream import DetailStream
 from slam6d.errors import Slam6dError
 from slam6d.geometry import Matrix, rotation_to_quaternion
-from slam6d.session import CACHE_DIR
+from slam6d.scan_levels import session_levels
 
 _CLIENT_WAIT = 5.0  # s: how long the full pass waits for the browser that opened the session to connect
 _COARSE_SETTLE = 0.5  # s: time for a browser to take in the coarse pass before the full one follows
@@ -37,13 +38,22 @@ class SceneStream(ViewCore):
         self.coarse_points = 0
         self.pose_updates = 0
         self.client_seen = threading.Event()
+        self.detail: DetailStream | None = None  # the scans' levels of detail, once loaded
+        self.coarse_node: Any = None  # the whole map's first look, until the scans' own nodes arrive
 
     def load(self) -> None:
         try:
-            sequence = self.state.sequence(lambda d, t: self._progress("Reading scans", d, t))
-            budget = int(self.state.session.config.engine.get("display_budget", display.DEFAULT_BUDGET))
+            session = self.state.session
+            levels = session_levels(
+                session,
+                lambda: self.state.sequence(lambda d, t: self._progress("Reading scans", d, t)).scans,
+                lambda done: self._progress("Levels of detail", done, len(self.state.sequence())),
+            )
+            # scans picked for editing (the colouring part's ``selected``) are shown in full
+            self.detail = DetailStream(self, levels, lambda: getattr(self, "selected", {}).keys())
+            budget = int(session.config.engine.get("display_budget", display.DEFAULT_BUDGET))
             self.controls.budget.value = budget  # type: ignore[misc]
-            poses = sequence.poses()
+            poses = session.poses()
             lo = np.min([p[:3, 3] for p in poses], axis=0)
             hi = np.max([p[:3, 3] for p in poses], axis=0)
             centre = (lo + hi) / 2
@@ -51,6 +61,7 @@ class SceneStream(ViewCore):
             self.server.initial_camera.look_at = centre
             self.server.initial_camera.position = centre + np.array([-0.4, -0.6, 0.7]) * size
             self.rebuild_scans()
+            self.detail.follow()
             self.controls.progress.visible = False
         except Exception as exc:
             self.error = str(exc)
@@ -66,37 +77,40 @@ class SceneStream(ViewCore):
         self.controls.status.content = f"{stage}… {done}/{total}"
 
     def rebuild_scans(self) -> None:
-        """(Re)send every scan at the current budget: the only time point data goes over the wire.
+        """(Re)send every scan at the levels of detail the camera calls for within the budget
+        (:mod:`app.view.detail_stream`): the only time every scan's points go over the wire.
 
-        Two passes when the budget is above :data:`display.COARSE_BUDGET`: first every scan at a
-        coarse level, so the whole map is on screen after one cheap frame (without a GPU a frame
-        costs ~2 µs per point), then every scan at the full budget, replacing the coarse points.
-        Each pass is one atomic batch, so a browser draws the map once per pass, complete,
-        rather than redrawing a growing map after each scan. (Sending a remembered full selection
-        in one pass was tried: its larger message reaches a busy browser seconds later than the
-        coarse one, and the full frame came no sooner.)
+        On the first pass, when the budget is above :data:`display.COARSE_BUDGET`, the whole map
+        first goes at the levels that fit the coarse budget as *one* point cloud in world
+        coordinates (:meth:`DetailStream.coarse_map`), so it is on screen after one message and one
+        cheap frame (without a GPU a frame costs ~2 µs per point; and each scene node costs the
+        server ~2 ms to make, seconds for a thousand scans). The scans' own nodes at the full budget
+        replace it in one atomic batch, so a browser draws the map once per pass, complete, rather
+        than redrawing a growing map after each scan.
         """
-        sequence = self.state.sequence()
-        clouds = [s.points for s in sequence.scans]
-        names = [s.name for s in sequence.scans]
+        assert self.detail is not None
         budget = int(self.controls.budget.value)
-        voxel = float(self.state.session.config.engine.get("display_voxel_size", 0.05))
-        self.coarse_points, coarse_sent = 0, 0.0
-        if budget > display.COARSE_BUDGET and sum(len(c) for c in clouds) > display.COARSE_BUDGET:
-            self._show_selection(sequence, display.coarse_selection(clouds), names, replace=True)
+        self.coarse_points = 0
+        first = not self.nodes
+        if first and budget > display.COARSE_BUDGET and self.detail.total_points > display.COARSE_BUDGET:
+            poses = self.state.session.poses()
+            points, colours, centre = self.detail.coarse_map(self.detail.choose(display.COARSE_BUDGET, poses), poses)
+            self.coarse_node = self.server.scene.add_point_cloud(
+                "/coarse_map",
+                points,
+                colours,
+                point_size=float(self.controls.point_size.value),
+                point_shading="flat",
+                position=centre,
+            )
             coarse_sent = time.monotonic()
-            self.coarse_points = sum(len(p) for p in self.local)
+            self.coarse_points = len(points)
             self.controls.status.content = (
-                f"**{self.state.session.name}** · {len(self.local)} scans · coarse view "
+                f"**{self.state.session.name}** · {len(poses)} scans · coarse view "
                 f"({self.coarse_points:,} points), loading full detail…"
             )
-            self.draw_graph()
-        selection = display.cached_budget_selection(
-            self.state.session.folder / CACHE_DIR / "display.npz", clouds, budget, voxel
-        )
-        if self.coarse_points:
             self._let_browsers_draw_coarse(coarse_sent)
-        self._show_selection(sequence, selection, names, replace=not self.coarse_points)
+        self._show_levels(self.detail.choose(budget, self.state.session.poses()), replace=True)
         self.draw_graph()
         self.update_status()
 
@@ -112,21 +126,23 @@ class SceneStream(ViewCore):
             return
         time.sleep(_COARSE_SETTLE)
 
-    def _show_selection(self, sequence: Any, selection: list[np.ndarray], names: list[str], replace: bool) -> None:
-        """Display ``selection`` of each scan; ``replace`` drops the old nodes (and their poses) first.
+    def _show_levels(self, levels: list[int], replace: bool) -> None:
+        """Display each scan at its level; ``replace`` drops the old nodes (and their poses) first.
 
         Without ``replace`` the scans keep the poses they are shown at, which may have moved
         (ICP stepping) since the previous pass was sent.
         """
+        assert self.detail is not None
         with self.lock:
-            self.local = [s.points[idx].astype(np.float32) for s, idx in zip(sequence.scans, selection, strict=True)]
+            self.local = self.detail.read(levels)
+            self.detail.shown = list(levels)
             if replace or len(self.poses) != len(self.local):
-                self.poses = [s.pose.copy() for s in sequence.scans]
+                self.poses = [p.copy() for p in self.state.session.poses()]
                 self.pose_version += 1
             self.residuals = None  # the colouring's per-point residuals belong to the old poses
             if self.controls.colour.value == "height":
                 self.height_range = display.height_range(self.local, self.poses)
-            self._send_scans(names, replace)
+            self._send_scans(self.detail.levels.names, replace)
             self.shown_revision = self.state.session.revision
 
     def _send_scans(self, names: list[str], replace: bool = True) -> None:
@@ -142,6 +158,9 @@ class SceneStream(ViewCore):
         does not work either: viser drops a queued "hidden" when "shown" follows.)
         """
         with self.server.atomic():
+            if self.coarse_node is not None:  # the first look at the whole map gives way to the scans
+                self.coarse_node.remove()
+                self.coarse_node = None
             if replace:
                 for node in self.nodes:
                     node.remove()

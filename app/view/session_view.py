@@ -4,6 +4,7 @@ Everything shown lives in server-side state, so a second browser on the same ses
 same map, colours and revision. The view is assembled from parts, one module each:
 
 * :mod:`app.view.scene_stream` - the scans sent at a point budget, coarse first, moved by pose;
+* :mod:`app.view.detail_stream` - their levels of detail, following the camera;
 * :mod:`app.view.colouring` - colours by scan, height or residual, picked and highlighted scans;
 * :mod:`app.view.picking` - which scan is under a click;
 * :mod:`app.view.playback` - the light map while registration is stepped;
@@ -120,7 +121,7 @@ class SessionViewer(SceneStream, Colouring, Picking, Playback, GraphOverlay):
     def update_status(self) -> None:
         session = self.state.session
         shown = sum(len(p) for p in self.local)
-        total = sum(len(s) for s in self.state.sequence().scans)
+        total = 0 if self.detail is None else self.detail.total_points  # without reading any scan in full
         self.controls.status.content = (
             f"**{session.name}** · {len(self.local)} scans · {shown:,} of {total:,} points shown · "
             f"revision {session.revision}"
@@ -185,6 +186,7 @@ class SessionViewer(SceneStream, Colouring, Picking, Playback, GraphOverlay):
             "colour": self.controls.colour.value,
             "revision_shown": self.shown_revision,
             "pose_updates": self.pose_updates,
+            "detail": None if self.detail is None else self.detail.as_dict(),
             "stepping": None if self.stepper is None else self.stepper.as_dict(),
             "clients": len(self.server.get_clients()),
         }

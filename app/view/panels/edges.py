@@ -8,6 +8,7 @@ import numpy as np
 
 from app.editing import editor_for
 from app.view.panels.host import ViewerHost
+from app.view.panels.paging import Pager
 from slam6d.geometry import make_pose, quaternion_to_rotation, rotation_to_quaternion
 
 _NONE = "—"
@@ -31,6 +32,7 @@ class EdgesPanel:
             self.force = gui.add_checkbox("Keep edge even if ICP disagrees", False)
             self.add = gui.add_button("Add edge A–B (ICP)")
             self.edge = gui.add_dropdown("Edge", [_NONE])
+            self.edge_pages = Pager(gui, "Edges page", lambda: viewer.run_safely(self.refresh))
             self.delete = gui.add_button("Delete edge")
             self.drag = gui.add_checkbox("Drag scan A (gizmo)", False)
             # bridging: a component that sits far off comes along with its scan A (see the Components folder)
@@ -151,7 +153,7 @@ class EdgesPanel:
         self.viewer.warn(out["warning"] or "")
 
     def refresh(self) -> None:
-        edges = self.editor.edges.listed(self.session_id)
+        edges, _ = self.edge_pages.page(self.editor.edges.listed(self.session_id), "edges")
         options = [f"{e['k']}: {e['i']}–{e['j']} {e['kind']}" for e in edges] or [_NONE]
         previous = self.edge.value
         self.edge.options = options

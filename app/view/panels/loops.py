@@ -9,6 +9,7 @@ import numpy as np
 from app.editing import editor_for
 from app.view import display
 from app.view.panels.host import ViewerHost
+from app.view.panels.paging import Pager
 from slam6d.relaxation_methods import RELAXATION_METHODS
 from slam6d.residuals import displacements
 
@@ -24,6 +25,7 @@ class LoopsPanel:
         with gui.add_folder("Loops & relaxation", expand_by_default=False):
             self.detect = gui.add_button("Detect loops")
             self.table = gui.add_markdown("No loop hypotheses yet.")
+            self.pages = Pager(gui, "Hypotheses page", lambda: viewer.run_safely(self.refresh))
             self.choice = gui.add_dropdown("Hypothesis", [_NONE])
             self.accept = gui.add_button("Accept loop")
             self.reject = gui.add_button("Reject loop")
@@ -65,6 +67,7 @@ class LoopsPanel:
             self.table.content = "No loop hypotheses yet: run registration or *Detect loops*."
             self.choice.options = [_NONE]
         else:
+            listed, caption = self.pages.page(listed, "hypotheses")
             rows = [
                 f"| {h['k']} | {h['i']}–{h['j']} | {h['distance']:.2f} | {h['overlap']:.2f} | {h['fitness']:.2f} "
                 f"| {'✔' if h['verified'] else '✘ ' + h['reason']} | **{h['status']}** |"
@@ -73,7 +76,7 @@ class LoopsPanel:
             header = (
                 "| # | scans | dist (m) | overlap | ICP fitness | verified | status |\n|---|---|---|---|---|---|---|"
             )
-            self.table.content = header + "\n" + "\n".join(rows)
+            self.table.content = header + "\n" + "\n".join(rows) + (f"\n\n{caption}" if caption else "")
             options = [f"{h['k']}: scans {h['i']}–{h['j']} ({h['status']})" for h in listed]
             previous = self.choice.value.split(":")[0]
             self.choice.options = options
