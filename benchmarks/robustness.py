@@ -33,6 +33,7 @@ import argparse
 import json
 import os
 import resource
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -261,13 +262,15 @@ def _identity(pose: Matrix) -> Matrix:
 
 
 def _bins_only(root: Path, balm: Path, count: int) -> Path:
-    """BALM's scans without the poses file beside them (the kitti reader would take it as odometry)."""
+    """BALM's scans without the poses file beside them (the kitti reader would take it as odometry).
+    Copies, not symbolic links: a scan folder lists only its own files (a link leading out of the
+    folder is not read)."""
     folder = root / "balm_bins"
     folder.mkdir(exist_ok=True)
     for source in sorted((balm / "velodyne_style_bin").glob("*.bin"))[:count]:
-        link = folder / source.name
-        if not link.exists():
-            link.symlink_to(source)
+        copy = folder / source.name
+        if not copy.exists():
+            shutil.copyfile(source, copy)
     return folder
 
 
