@@ -424,9 +424,11 @@ def main() -> None:
             f"{'success rate':42s}"
             + "".join(f" | {wins[n]:>11d}/{tried[n]:<2d} ({100 * wins[n] / max(tried[n], 1):3.0f} %)" for n in methods)
         )
-        for column, label in ((1, "wall time"), (2, "CPU time (slam6d run's includes its start-up)")):
-            every = [r[column] for r in ratios]
-            no_odometry = [r[column] for r in ratios if "no-odometry" in r[0]] or [np.nan]
+        walls = [(name, wall) for name, wall, _ in ratios]
+        cpus = [(name, cpu) for name, _, cpu in ratios]
+        for column, label in ((walls, "wall time"), (cpus, "CPU time (slam6d run's includes its start-up)")):
+            every = [r for _, r in column]
+            no_odometry = [r for name, r in column if "no-odometry" in name] or [np.nan]
             if every:
                 print(
                     f"slam6d run / small_gicp chain, {label}: median x{np.median(every):.1f},"
