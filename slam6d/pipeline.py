@@ -14,9 +14,10 @@ Stages (after Nüchter et al.):
    the last ``metascan_scans``, each searched with the kd-tree and normals it got when it was added,
    so the metascan costs nothing to build).
 2. Loops. For each scan, earlier scans within a fraction of the laser range but far along the path
-   are loop hypotheses (a kd-tree over the positions); the best by octree overlap is refined by the
-   octree search and verified by ICP, judged against the sequence's usual consecutive overlap and
-   fitness, and when accepted its correction is diffused over the loop (:mod:`slam6d.loops`).
+   are loop hypotheses (a kd-tree over the positions); the best by octree overlap is matched by ICP
+   from its pose-implied start (and from the octree search's winner when that fits poorly), judged
+   against the sequence's usual consecutive overlap and fitness, and when accepted its correction
+   is diffused over the loop (:mod:`slam6d.loops`).
 3. Relaxation over the neighbour graph: the seed's simultaneous matching, or LUM-style pose-graph
    least squares (:mod:`slam6d.relax`, :mod:`slam6d.simultaneous`, :mod:`slam6d.lum`).
 
