@@ -14,8 +14,10 @@ Stages (after Nüchter et al.):
    the last ``metascan_scans``, each searched with the kd-tree and normals it got when it was added,
    so the metascan costs nothing to build).
 2. Loops. For each scan, earlier scans within a fraction of the laser range but far along the path
-   are loop hypotheses; the best by octree overlap is verified by ICP and, when accepted, its
-   correction is diffused over the loop (:mod:`slam6d.loops`).
+   are loop hypotheses (a kd-tree over the positions); the best by octree overlap is matched by ICP
+   from its pose-implied start (and from the octree search's winner when that fits poorly), judged
+   against the sequence's usual consecutive overlap and fitness, and when accepted its correction
+   is diffused over the loop (:mod:`slam6d.loops`).
 3. Relaxation over the neighbour graph: the seed's simultaneous matching, or LUM-style pose-graph
    least squares (:mod:`slam6d.relax`, :mod:`slam6d.simultaneous`, :mod:`slam6d.lum`).
 
@@ -58,11 +60,13 @@ from slam6d.icp import ICPConfig, ICPIteration, ICPResult, icp_iterations
 from slam6d.initial_guess import GuessResult, OctreeSearchConfig, extrapolate_odometry, octree_guess
 from slam6d.io.frames import FrameType, write_sequence_frames
 from slam6d.loops import (
+    LoopCandidates,
     LoopConfig,
     LoopHypothesis,
     diffuse_loop_correction,
     find_loop_hypotheses,
     loop_correction,
+    usual_fit,
     verify,
 )
 from slam6d.model import ModelIndex, StackedModel
@@ -571,6 +575,10 @@ class Pipeline:
     def _loop_stage(self) -> Iterator[Event]:
         cfg = self.config.loop
         max_range = self.max_range()
+        # the scale of the loop gates: consecutive pairs as registration related them
+        fitness = [summary.fitness for summary in self.summaries]
+        usual = usual_fit(self.poses, self._occupancy_of, self.models.points, fitness, self.links)
+        index = LoopCandidates(self.poses, max_range, cfg)  # rebuilt whenever a closing moves the poses
         last_tried = -(10**9)
         for j in range(2, len(self.sequence)):
             if j - last_tried < cfg.closing_gap:
@@ -578,14 +586,18 @@ class Pipeline:
             if self._cancel is not None and self._cancel():
                 raise Cancelled("run cancelled during loop detection")
             candidates = find_loop_hypotheses(
-                self.poses[: j + 1], max_range, cfg, self._occupancy_of, self.models.points, last_only=1
+                self.poses[: j + 1],
+                max_range,
+                cfg,
+                self._occupancy_of,
+                self.models.points,
+                last_only=1,
+                candidates=index,
             )
             tried: list[LoopHypothesis] = []
-            for hyp in candidates:
-                if hyp.reason or len(tried) >= cfg.candidates_per_scan:
-                    break
+            for hyp in candidates[: cfg.candidates_per_scan]:
                 # the thinned data scan, as in sequential matching: verification runs ICP three times
-                tried.append(verify(hyp, self.models.index(hyp.i), self._data_points(j), self._icp_config, cfg))
+                tried.append(verify(hyp, self.models.index(hyp.i), self._data_points(j), self._icp_config, cfg, usual))
             if not tried:
                 continue
             last_tried = j
@@ -603,6 +615,7 @@ class Pipeline:
                     if k > loop.i:
                         self._set_pose(k, pose, FrameType.ELCH)
                 self.loops_closed.append((loop.i, loop.j))
+                index = LoopCandidates(self.poses, max_range, cfg)
                 yield LoopClosed(loop, displacement)
 
     def _relax_stage(self) -> Iterator[Event]:
