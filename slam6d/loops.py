@@ -313,12 +313,15 @@ def verify(
     config: LoopConfig = LoopConfig(),
     usual: UsualFit | None = None,
     model_octree: Octree | None = None,
+    overlap_at: Callable[[Matrix], float] | None = None,
 ) -> LoopHypothesis:
     """Match scan j against scan i (own frames) from the pose-implied start, refined by the octree
     search when ICP from there fits poorly; accept only when overlap, ambiguity, fitness, RMS,
     convergence, constraint, drift and consistency all pass (see the module docstring). ``usual``
     scales the overlap and fitness bars; ``model_octree`` is scan i's octree when the caller keeps
-    one (built here otherwise, only when the search or the overlap needs it).
+    one (built here otherwise, only when the search or the overlap needs it). ``overlap_at`` measures
+    the overlap at a placement the way ``usual`` was measured (the same occupancy and points), so the
+    refined overlap and its bar compare like with like; without it, scan i's octree and the data points.
 
     Every gate judges the refined placement, never the drifted start. ICP runs first from the start
     and the search only when that fit is poor (as in sequential registration): a close start is
@@ -363,7 +366,10 @@ def verify(
     moved, _ = _pose_change(start, result.transform, data_points)
     verdict = replace(verdict, fitness=result.fitness, rms=result.rms, transform=result.transform, correction=moved)
     tree = tree if tree is not None else Octree(model.points, search.cube_sizes[-1])
-    verdict.overlap = octree_overlap(tree.occupancy(config.overlap_cube), data_points, result.transform)
+    if overlap_at is not None:
+        verdict.overlap = overlap_at(result.transform)
+    else:
+        verdict.overlap = octree_overlap(tree.occupancy(config.overlap_cube), data_points, result.transform)
     verdict.constraint, weakest = translation_constraint(model, data_points, result.transform, d)
     allowed = config.drift_floor + config.drift_per_metre * hypothesis.path_length
 

@@ -33,6 +33,7 @@ import time
 from collections.abc import Callable, Generator, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -66,6 +67,7 @@ from slam6d.loops import (
     diffuse_loop_correction,
     find_loop_hypotheses,
     loop_correction,
+    octree_overlap,
     usual_fit,
     verify,
 )
@@ -572,6 +574,11 @@ class Pipeline:
             self._occupancy[index] = Octree(self.models.points[index], cube).occupancy(cube)
         return self._occupancy[index]
 
+    def _overlap_at(self, i: int, j: int, transform: Matrix) -> float:
+        """Scan j's overlap with scan i at ``transform``, measured as the loop candidates' and the
+        sequence's usual overlap are (scan i's occupancy, scan j's model points)."""
+        return octree_overlap(self._occupancy_of(i), self.models.points[j], transform)
+
     def _loop_stage(self) -> Iterator[Event]:
         cfg = self.config.loop
         max_range = self.max_range()
@@ -579,9 +586,9 @@ class Pipeline:
         fitness = [summary.fitness for summary in self.summaries]
         usual = usual_fit(self.poses, self._occupancy_of, self.models.points, fitness, self.links)
         index = LoopCandidates(self.poses, max_range, cfg)  # rebuilt whenever a closing moves the poses
-        last_tried = -(10**9)
+        last_closed = -(10**9)  # a revisited stretch offers many loops at once: one closing covers them
         for j in range(2, len(self.sequence)):
-            if j - last_tried < cfg.closing_gap:
+            if j - last_closed < cfg.closing_gap:
                 continue
             if self._cancel is not None and self._cancel():
                 raise Cancelled("run cancelled during loop detection")
@@ -597,10 +604,19 @@ class Pipeline:
             tried: list[LoopHypothesis] = []
             for hyp in candidates[: cfg.candidates_per_scan]:
                 # the thinned data scan, as in sequential matching: verification runs ICP three times
-                tried.append(verify(hyp, self.models.index(hyp.i), self._data_points(j), self._icp_config, cfg, usual))
+                tried.append(
+                    verify(
+                        hyp,
+                        self.models.index(hyp.i),
+                        self._data_points(j),
+                        self._icp_config,
+                        cfg,
+                        usual,
+                        overlap_at=partial(self._overlap_at, hyp.i, j),
+                    )
+                )
             if not tried:
                 continue
-            last_tried = j
             self.loops.extend(tried)
             yield LoopsDetected(tried)
             accepted = [h for h in tried if h.accepted]
@@ -615,6 +631,7 @@ class Pipeline:
                     if k > loop.i:
                         self._set_pose(k, pose, FrameType.ELCH)
                 self.loops_closed.append((loop.i, loop.j))
+                last_closed = j
                 index = LoopCandidates(self.poses, max_range, cfg)
                 yield LoopClosed(loop, displacement)
 
