@@ -9,8 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from app.errors import PartialResultError
-from app.registration import keep_partial_run, store_run, working_copy
+from app.registration import RunCommit, working_copy
 from app.traces import TraceRecorder
 from app.view.panels.host import ViewerHost
 from slam6d.engine_settings import pipeline_config
@@ -49,6 +48,9 @@ class Stepper:
         self.pipeline = Pipeline(working_copy(viewer.state.sequence()), config)
         self.recorder = TraceRecorder()  # the stepped run is stored for replay too
         self.recorder.attach(self.pipeline)
+        self.run = RunCommit(
+            viewer.workbench, viewer.session_id, author, self.pipeline, self.recorder, {"stepped": True}
+        )
         self.history: list[tuple[int, float, int]] = []
         self.current: int | None = None
         self.model: list[int] = []
@@ -84,19 +86,12 @@ class Stepper:
         try:
             return advance()
         except Slam6dError as exc:
-            kept = keep_partial_run(
-                self.viewer.workbench,
-                self.viewer.session_id,
-                self.author,
-                self.pipeline,
-                self.recorder,
-                {"stepped": True},
-            )
-            if kept is None:
+            partial = self.run.partial_error(exc)
+            if partial is None:
                 raise
             self.finished = True
-            self.viewer.controls.step_status.content = kept["kept"]
-            raise PartialResultError(f"{exc} — {kept['kept']}", kept) from exc
+            self.viewer.controls.step_status.content = str(partial.result["kept"])
+            raise partial from exc
 
     def _show_all(self, events: list[Any]) -> None:
         """Draw under the view's lock: a view stopped meanwhile (its server gone) draws nothing."""
@@ -170,7 +165,7 @@ class Stepper:
             viewer.server.scene.add_line_segments(
                 "/correspondences", np.zeros((1, 2, 3), np.float32), colors=(0, 0, 0), visible=False
             )
-            store_run(viewer.workbench, viewer.session_id, self.author, self.pipeline, self.recorder, {"stepped": True})
+            self.run.store()
             status.content = "registration finished; stored as a new revision"
         elif isinstance(event, LoopsDetected):
             accepted = sum(1 for h in event.hypotheses if h.accepted)
