@@ -8,11 +8,10 @@ import numpy as np
 
 from app.editing import editor_for
 from app.view import display
+from app.view.controls import NO_CHOICE
 from app.view.panels.host import ViewerHost
 from slam6d.relaxation_methods import RELAXATION_METHODS
 from slam6d.residuals import displacements
-
-_NONE = "—"
 
 
 class LoopsPanel:
@@ -24,7 +23,7 @@ class LoopsPanel:
         with gui.add_folder("Loops & relaxation", expand_by_default=False):
             self.detect = gui.add_button("Detect loops")
             self.table = gui.add_markdown("No loop hypotheses yet.")
-            self.choice = gui.add_dropdown("Hypothesis", [_NONE])
+            self.choice = gui.add_dropdown("Hypothesis", [NO_CHOICE])
             self.accept = gui.add_button("Accept loop")
             self.reject = gui.add_button("Reject loop")
             self.close = gui.add_button("Close loops (error diffusion)")
@@ -54,7 +53,7 @@ class LoopsPanel:
         self._submit("relax", self.editor.relaxation.relax_job, event, method=self.method.value, fixed=[0])
 
     def _decide(self, accept: bool, event: Any) -> None:
-        if self.choice.value == _NONE:
+        if self.choice.value == NO_CHOICE:
             raise ValueError("choose a loop hypothesis first")
         k = int(self.choice.value.split(":")[0])
         self.editor.loops.decide(self.session_id, k, accept, self.viewer.author(event))
@@ -63,7 +62,7 @@ class LoopsPanel:
         listed = self.editor.loops.listed(self.session_id)
         if not listed:
             self.table.content = "No loop hypotheses yet: run registration or *Detect loops*."
-            self.choice.options = [_NONE]
+            self.choice.options = [NO_CHOICE]
         else:
             rows = [
                 f"| {h['k']} | {h['i']}–{h['j']} | {h['distance']:.2f} | {h['overlap']:.2f} | {h['fitness']:.2f} "
@@ -91,17 +90,17 @@ class LoopsPanel:
     def _show_before(self) -> None:
         before, after = self._revisions()
         self.viewer.set_poses(before if self.before.value else after)
-        self.viewer.draw_graph()
+        self.viewer.graph.draw()
 
     def _colour(self) -> None:
         viewer = self.viewer
         if not self.by_displacement.value:
-            viewer.highlight = {}
+            viewer.colouring.highlight = {}
             self.legend.content = ""
         else:
             moved = np.array(displacements(*self._revisions()))
             top = float(moved.max()) if len(moved) and moved.max() > 0 else 1.0
             colours = display.ramp(moved, 0.0, top)
-            viewer.highlight = {k: display.rgb(colours[k]) for k in range(len(moved))}
+            viewer.colouring.highlight = {k: display.rgb(colours[k]) for k in range(len(moved))}
             self.legend.content = f"Displacement since the parent revision: blue 0 m → red {top:.2f} m"
-        viewer.recolour()
+        viewer.colouring.recolour()
