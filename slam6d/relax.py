@@ -21,6 +21,7 @@ the trajectory continuous.
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 
@@ -398,6 +399,32 @@ def _hits(
     placed, _, source, _ = placed_in(models, poses, i, others, sample)
     _, idx = models.index(i).nearest(placed, models.config.max_distance)
     return np.bincount(source[idx >= 0], minlength=len(others)), np.bincount(source, minlength=len(others))
+
+
+def measured_result(
+    models: ScanModels,
+    pairs: list[NeighbourPair],
+    poses: list[Matrix],
+    residual_before: float,
+    iterations: int,
+    method: str,
+    began: float,
+    chi2: Sequence[float] = (),
+) -> RelaxationResult:
+    """A relaxation's result, its residual measured afresh over its neighbour pairs at the poses it
+    reached (the methods that do not already know it from their last round); ``began``: its
+    ``time.perf_counter()`` at the start; ``chi2``: the pose-graph error per round, if it has one."""
+    return RelaxationResult(
+        poses=poses,
+        residual_before=residual_before,
+        residual_after=pair_residual(models, poses, pairs),
+        iterations=iterations,
+        method=method,
+        neighbours=pairs,
+        chi2_before=chi2[0] if chi2 else None,
+        chi2_after=chi2[-1] if chi2 else None,
+        seconds=time.perf_counter() - began,
+    )
 
 
 def pair_residual(
