@@ -7,6 +7,7 @@ scans so the 3D view keeps showing the committed revision until the run is store
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 from app.editing.loops import hypotheses_entry
@@ -56,84 +57,72 @@ def registration_job(workbench: Workbench, session_id: str, author: str, paramet
         base = state.session.revision  # the revision the run starts from (the scans follow the head)
         runner = pipeline.Pipeline(sequence, config, scheduler=workbench.scheduler())
         recorder = TraceRecorder()
+        run = RunCommit(workbench, session_id, author, runner, recorder, {"config": to_jsonable(config)}, base)
         try:
             report = recorder.attach(runner).run(progress, cancel)
         except Slam6dError as exc:
-            kept = keep_partial_run(
-                workbench, session_id, author, runner, recorder, {"config": to_jsonable(config)}, base
-            )
-            if kept is None:
+            partial = run.partial_error(exc)
+            if partial is None:
                 raise
-            raise PartialResultError(f"{exc} — {kept['kept']}", kept) from exc
-        summary = to_jsonable(report)
-        return store_run(workbench, session_id, author, runner, recorder, {"config": to_jsonable(config)}, base) | {
-            "report": summary
-        }
+            raise partial from exc
+        return run.store() | {"report": to_jsonable(report)}
 
     return work
 
 
-def keep_partial_run(
-    workbench: Workbench,
-    session_id: str,
-    author: str,
-    runner: Any,
-    recorder: Any,
-    parameters: dict,
-    base: int | None = None,
-) -> dict[str, Any] | None:
-    """Commit the poses of a run whose stage failed (or was cancelled) as a revision, with the failure
-    (stage, reason) and the connected components in its journal entry, so the operator can correct
-    it by hand instead of starting over. None when the run has no report of a failure to keep."""
-    report = getattr(runner, "report", None)
-    failure = getattr(report, "failure", None)
-    if report is None or failure is None:
-        return None
-    components = [list(c) for c in getattr(report, "components", [])]
-    stored = store_run(
-        workbench,
-        session_id,
-        author,
-        runner,
-        recorder,
-        {**parameters, "failure": to_jsonable(failure), "components": components},
-        base,
-    )
-    pieces = f" in {len(components)} connected components" if len(components) > 1 else ""
-    message = (
-        f"the {failure.stage} stage failed; the poses of the stages before it are kept as revision "
-        f"{stored['revision']}{pieces}"
-    )
-    return stored | {
-        "kept": message,
-        "failure": to_jsonable(failure),
-        "components": components,
-        "report": to_jsonable(report),
-    }
+@dataclass(frozen=True)
+class RunCommit:
+    """A registration run (a job's, or the 3D view's stepped one) and where its poses go when it ends.
 
-
-def store_run(
-    workbench: Workbench,
-    session_id: str,
-    author: str,
-    runner: Any,
-    recorder: Any,
-    parameters: dict,
-    base: int | None = None,
-) -> dict:
-    """Commit a finished run with its trace file named in the journal, then its loops for review.
-
-    ``base``: the revision the run started from; a scan someone moved meanwhile refuses the run (409).
+    Both ways of running registration end the same way: finished, the poses become a revision; failed
+    part-way, the poses of the stages before the failure do, so that nobody starts over.
     """
 
-    session = workbench.state(session_id).session
-    meta = {"author": author, "final_poses": to_jsonable(runner.poses)}
-    name = recorder.save(session, runner.odometry, meta)
-    graph = {"loops": accepted_loops(runner.report), "removed": []}
-    revision = workbench.commit(
-        session_id, runner.poses, author, "register", {**parameters, "trace": name}, graph=graph, base=base
-    )
-    if runner.report.loops:
-        session.journal.append(author, "loop_hypotheses", hypotheses_entry(runner.report.loops))
-        workbench.notify(session_id)
-    return {"revision": revision, "trace": name}
+    workbench: Workbench
+    session_id: str
+    author: str
+    runner: pipeline.Pipeline
+    recorder: TraceRecorder
+    parameters: dict[str, Any]
+    base: int | None = None  # the revision the run started from; a scan someone moved meanwhile refuses it (409)
+
+    def store(self, failure: dict[str, Any] | None = None) -> dict[str, Any]:
+        """Commit the run's poses with its trace file named in the journal, then its loops for review;
+        ``failure``: what the journal entry also records of a stage that failed."""
+        session = self.workbench.state(self.session_id).session
+        meta = {"author": self.author, "final_poses": to_jsonable(self.runner.poses)}
+        name = self.recorder.save(session, self.runner.odometry, meta)
+        graph = {"loops": accepted_loops(self.runner.report), "removed": []}
+        parameters = {**self.parameters, **(failure or {}), "trace": name}
+        revision = self.workbench.commit(
+            self.session_id, self.runner.poses, self.author, "register", parameters, graph=graph, base=self.base
+        )
+        report = self.runner.report
+        if report is not None and report.loops:
+            session.journal.append(self.author, "loop_hypotheses", hypotheses_entry(report.loops))
+            self.workbench.notify(self.session_id)
+        return {"revision": revision, "trace": name}
+
+    def keep_partial(self) -> dict[str, Any] | None:
+        """Commit the poses of a run whose stage failed (or was cancelled) as a revision, with the failure
+        (stage, reason) and the connected components in its journal entry, so the operator can correct
+        it by hand instead of starting over. None when the run has no report of a failure to keep."""
+        report = getattr(self.runner, "report", None)
+        failure = getattr(report, "failure", None)
+        if report is None or failure is None:
+            return None
+        kept = {"failure": to_jsonable(failure), "components": [list(c) for c in getattr(report, "components", [])]}
+        stored = self.store(kept)
+        components = kept["components"]
+        pieces = f" in {len(components)} connected components" if len(components) > 1 else ""
+        message = (
+            f"the {failure.stage} stage failed; the poses of the stages before it are kept as revision "
+            f"{stored['revision']}{pieces}"
+        )
+        return stored | kept | {"kept": message, "report": to_jsonable(report)}
+
+    def partial_error(self, failed: Slam6dError) -> PartialResultError | None:
+        """The error to raise for a run that ``failed``: naming the revision its poses so far were kept
+        as, or None when there is nothing to keep (raise ``failed`` itself)."""
+        kept = self.keep_partial()
+        return None if kept is None else PartialResultError(f"{failed} — {kept['kept']}", kept)

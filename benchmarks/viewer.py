@@ -174,8 +174,8 @@ def memory_mb() -> tuple[float, float]:
 
 def stream_poses(viewer: Any, index: int, rate: float, seconds: float) -> tuple[int, float]:
     """Move one scan as the stepper does; returns (updates sent, mean server-side cost per update in s)."""
-    base = viewer.poses[index].copy()
-    assert viewer.focus is None or index in viewer.focus
+    base = viewer.scans.poses[index].copy()
+    assert viewer.scans.focus is None or index in viewer.scans.focus
     count, busy = 0, 0.0
     start = time.perf_counter()
     while (now := time.perf_counter()) - start < seconds:
@@ -202,7 +202,7 @@ def first_full_map(page: Any, server: LiveServer, url: str) -> dict[str, Any]:
         viewer = server.app.state.viewers.existing(SESSION_ID)
         if viewer is not None:
             marks.setdefault("viewer_started", time.time() - start)
-            coarse = coarse or viewer.coarse_points
+            coarse = coarse or viewer.stream.coarse_points
             if coarse and "coarse_sent" not in marks:
                 marks["coarse_sent"] = time.time() - start
             if "viewer_ready" not in marks and viewer.ready.is_set():
@@ -234,8 +234,8 @@ def first_full_map(page: Any, server: LiveServer, url: str) -> dict[str, Any]:
 
 def pose_update_rates(frame: Any, viewer: Any, rate: float, seconds: float, playback: bool) -> dict[str, Any]:
     """Stream poses of one scan; what arrived in the page and what was drawn, per second."""
-    index = len(viewer.nodes) // 2
-    frame.evaluate(f"window.__bench.poseName = {viewer.nodes[index].name!r}")
+    index = len(viewer.scans.nodes) // 2
+    frame.evaluate(f"window.__bench.poseName = {viewer.scans.nodes[index].name!r}")
     if playback:
         viewer.begin_playback([index, index - 1])
     time.sleep(1.5)  # let the view settle

@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
+from typing import TypeVar
+
+T = TypeVar("T")
 
 
 class Slam6dError(Exception):
@@ -78,3 +82,11 @@ class InvalidValueError(Slam6dError, ValueError):
         self.field = field
         self.reason = message
         super().__init__(f"{field}: {message}")
+
+
+def one_of(choices: Mapping[str, T], name: str, what: str) -> T:
+    """The entry of ``choices`` called ``name``; a ValueError naming every choice when there is none
+    (a simulation's worlds, sensors and motions are picked by name on the command line)."""
+    if name not in choices:
+        raise ValueError(f"unknown {what} '{name}'; choose one of {', '.join(choices)}")
+    return choices[name]

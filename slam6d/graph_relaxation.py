@@ -30,6 +30,7 @@ from slam6d.relax import (
     RelaxationResult,
     ScanModels,
     check_cancel,
+    measured_result,
     pair_residual,
 )
 
@@ -99,17 +100,7 @@ def graph_relaxation(
             progress(rounds, result.residual_after, [k for k, s in enumerate(shifts) if s > config.tolerance])
         if max(shifts) <= config.tolerance:
             break
-    return RelaxationResult(
-        poses=current,
-        residual_before=residual_before,
-        residual_after=pair_residual(models, current, pairs),
-        iterations=rounds,
-        method="graph",
-        neighbours=pairs,
-        chi2_before=chi2[0] if chi2 else None,
-        chi2_after=chi2[-1] if chi2 else None,
-        seconds=time.perf_counter() - began,
-    )
+    return measured_result(models, pairs, current, residual_before, rounds, "graph", began, chi2)
 
 
 def graph_information(

@@ -26,6 +26,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import NDArray
 
+from slam6d.errors import one_of
 from slam6d.geometry import Matrix, make_pose, pose_from_xyzrpy, rot_x, rot_y, rot_z, xyzrpy_from_pose
 from slam6d.scene_mesh import Scene
 
@@ -62,9 +63,7 @@ MOTION_NAMES = tuple(MOTIONS)
 
 
 def get_motion(name: str) -> Motion:
-    if name not in MOTIONS:
-        raise ValueError(f"unknown motion '{name}'; choose one of {', '.join(MOTION_NAMES)}")
-    return MOTIONS[name]
+    return one_of(MOTIONS, name, "motion")
 
 
 def standing_pose(ground: NDArray[np.float64], heading: float, up: NDArray[np.float64], height: float) -> Matrix:

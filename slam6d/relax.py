@@ -21,6 +21,7 @@ the trajectory continuous.
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 
@@ -272,12 +273,11 @@ def neighbour_pairs(
     else:
         travelled = path_lengths(poses)
         candidates = []
+        on_path = [
+            _ScanOnPath(i, centres[a_pos], poses, travelled, extents[a_pos], per_scan) for a_pos, i in enumerate(chosen)
+        ]
         for a_pos, i in enumerate(chosen):
-            candidates.append(
-                _spread_candidates(
-                    i, [chosen[b] for b in near(a_pos)], centres[a_pos], poses, travelled, extents[a_pos], per_scan
-                )
-            )
+            candidates.append(_spread_candidates(on_path[a_pos], [chosen[b] for b in near(a_pos)]))
             count(i, candidates[-1])
         keep = {key for key, found in counted.items() if found > min_pairs}
         if len(keep) > per_scan * len(chosen):  # within the bound the whole graph is kept: nothing to choose
@@ -285,9 +285,7 @@ def neighbour_pairs(
             for a_pos, i in enumerate(chosen):
                 overlapping = [j for j in candidates[a_pos] if counted[(min(i, j), max(i, j))] > min_pairs]
                 strength = {j: counted[(min(i, j), max(i, j))] for j in overlapping}
-                for j in _bounded_choice(
-                    i, overlapping, strength, centres[a_pos], poses, travelled, extents[a_pos], per_scan
-                ):
+                for j in _bounded_choice(on_path[a_pos], overlapping, strength):
                     keep.add((min(i, j), max(i, j)))
     members_set = set(chosen)
     for i, j in linked:  # a registration related the two scans: kept with any pairs at all
@@ -305,25 +303,29 @@ SECTORS = 8  # bearings a scan's neighbours are spread over
 STRETCH = 0.25  # a path stretch (the unit neighbours are spread along) as a fraction of the scan's reach
 
 
-def _stretch(travelled: FloatArray, i: int, j: int, reach: float) -> int:
-    """Which stretch of the path scan j lies on, counted from scan i (signed: before or after it)."""
-    return int(np.floor((travelled[j] - travelled[i]) / max(STRETCH * reach, 1e-9)))
+@dataclass(frozen=True)
+class _ScanOnPath:
+    """Scan ``i`` where it lies - its centre, how far along the path, how far it reaches - and its bound
+    of neighbours: what choosing the scans it is paired with needs."""
+
+    i: int
+    centre: FloatArray
+    poses: Sequence[Matrix]
+    travelled: FloatArray
+    reach: float
+    per_scan: int
+
+    def stretches(self, others: NDArray[np.int64] | Sequence[int]) -> FloatArray:
+        """Which stretch of the path each of ``others`` lies on, counted from scan i (signed: before or after it)."""
+        return np.floor((self.travelled[np.asarray(others)] - self.travelled[self.i]) / max(STRETCH * self.reach, 1e-9))
+
+    def sector(self, j: int) -> int:
+        """The bearing sector around scan i that scan j lies in."""
+        d = self.poses[j][:3, 3] - self.centre
+        return int(np.floor((np.arctan2(d[1], d[0]) + np.pi) / (2 * np.pi) * SECTORS)) % SECTORS
 
 
-def _sector(centre: FloatArray, other: FloatArray) -> int:
-    d = other - centre
-    return int(np.floor((np.arctan2(d[1], d[0]) + np.pi) / (2 * np.pi) * SECTORS)) % SECTORS
-
-
-def _spread_candidates(
-    i: int,
-    near: Sequence[int],
-    centre: FloatArray,
-    poses: Sequence[Matrix],
-    travelled: FloatArray,
-    reach: float,
-    per_scan: int,
-) -> list[int]:
+def _spread_candidates(scan: _ScanOnPath, near: Sequence[int]) -> list[int]:
     """The scans worth counting overlap with for scan i, at most ``2 x per_scan``: its sequential
     neighbours, then the closest scan of each path stretch (a quarter of its reach) in reach, then
     the second closest of each, and so on, nearer ones first within each round.
@@ -333,31 +335,22 @@ def _spread_candidates(
     gets its candidates before a tenth scan of the stretch scan i lies on.
     """
     near_set = set(near)
-    sequential = [j for j in (i - 1, i + 1) if j in near_set]
+    sequential = [j for j in (scan.i - 1, scan.i + 1) if j in near_set]
     others = np.asarray(near, dtype=np.int64)
     if len(others) == 0:
         return sequential
-    gaps = np.linalg.norm(np.array([poses[j][:3, 3] for j in others]) - centre, axis=1)
-    stretches = np.floor((travelled[others] - travelled[i]) / max(STRETCH * reach, 1e-9))
+    gaps = np.linalg.norm(np.array([scan.poses[j][:3, 3] for j in others]) - scan.centre, axis=1)
+    stretches = scan.stretches(others)
     order = np.lexsort((gaps, stretches))  # by stretch, the closest first within each
     sorted_stretches = stretches[order]
     starts = np.flatnonzero(np.r_[True, sorted_stretches[1:] != sorted_stretches[:-1]])
     rank = np.arange(len(order)) - np.repeat(starts, np.diff(np.r_[starts, len(order)]))
     spread = [int(j) for j in others[order[np.lexsort((gaps[order], rank))]]]
     out = list(dict.fromkeys(sequential + spread))
-    return out[: max(2 * per_scan, len(sequential))]
+    return out[: max(2 * scan.per_scan, len(sequential))]
 
 
-def _bounded_choice(
-    i: int,
-    overlapping: Sequence[int],
-    strength: dict[int, int],
-    centre: FloatArray,
-    poses: Sequence[Matrix],
-    travelled: FloatArray,
-    reach: float,
-    per_scan: int,
-) -> list[int]:
+def _bounded_choice(scan: _ScanOnPath, overlapping: Sequence[int], strength: dict[int, int]) -> list[int]:
     """At most ``per_scan`` neighbours of scan i, chosen by overlap but spread in direction and along the path.
 
     The sequential neighbours first (the trajectory's spine keeps every scan connected), then the
@@ -367,27 +360,27 @@ def _bounded_choice(
     a map globally consistent are the ones seen from elsewhere.
     """
     ranked = sorted(overlapping, key=lambda j: -strength[j])
-    picked = [j for j in (i - 1, i + 1) if j in strength]
+    picked = [j for j in (scan.i - 1, scan.i + 1) if j in strength]
     sectors: set[int] = set()
     for j in ranked:
-        sector = _sector(centre, poses[j][:3, 3])
+        sector = scan.sector(j)
         if j not in picked and sector not in sectors:
             sectors.add(sector)
             picked.append(j)
-    picked = picked[: max(per_scan, 2)]
+    picked = picked[: max(scan.per_scan, 2)]
     # then round by round over the path's stretches: the best of each stretch not represented yet,
     # then the second best of each, ... (a scan's own stretch holds the most, and the most alike)
     seen: dict[int, int] = {}
     for j in picked:
-        key = _stretch(travelled, i, j, reach)
+        key = int(scan.stretches([j])[0])
         seen[key] = seen.get(key, 0) + 1
     rounds = []
     for j in ranked:
         if j not in picked:
-            key = _stretch(travelled, i, j, reach)
+            key = int(scan.stretches([j])[0])
             seen[key] = seen.get(key, 0) + 1
             rounds.append((seen[key], -strength[j], j))
-    picked += [j for _, _, j in sorted(rounds)[: max(0, per_scan - len(picked))]]
+    picked += [j for _, _, j in sorted(rounds)[: max(0, scan.per_scan - len(picked))]]
     return picked
 
 
@@ -398,6 +391,32 @@ def _hits(
     placed, _, source, _ = placed_in(models, poses, i, others, sample)
     _, idx = models.index(i).nearest(placed, models.config.max_distance)
     return np.bincount(source[idx >= 0], minlength=len(others)), np.bincount(source, minlength=len(others))
+
+
+def measured_result(
+    models: ScanModels,
+    pairs: list[NeighbourPair],
+    poses: list[Matrix],
+    residual_before: float,
+    iterations: int,
+    method: str,
+    began: float,
+    chi2: Sequence[float] = (),
+) -> RelaxationResult:
+    """A relaxation's result, its residual measured afresh over its neighbour pairs at the poses it
+    reached (the methods that do not already know it from their last round); ``began``: its
+    ``time.perf_counter()`` at the start; ``chi2``: the pose-graph error per round, if it has one."""
+    return RelaxationResult(
+        poses=poses,
+        residual_before=residual_before,
+        residual_after=pair_residual(models, poses, pairs),
+        iterations=iterations,
+        method=method,
+        neighbours=pairs,
+        chi2_before=chi2[0] if chi2 else None,
+        chi2_after=chi2[-1] if chi2 else None,
+        seconds=time.perf_counter() - began,
+    )
 
 
 def pair_residual(

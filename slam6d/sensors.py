@@ -19,6 +19,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from slam6d.errors import one_of
+
 POINTS_PER_LINE = 181  # a SICK LMS 2xx: 181 readings per 180° sweep
 
 
@@ -89,10 +91,7 @@ LEGACY_PATTERNS = {"rotating": "rotating-sick", "tilting": "tilting-sick"}  # th
 
 def get_sensor(name: str) -> Sensor:
     """The sensor called ``name`` (the former pattern names ``rotating``/``tilting`` are accepted)."""
-    sensor = SENSORS.get(LEGACY_PATTERNS.get(name, name))
-    if sensor is None:
-        raise ValueError(f"unknown sensor '{name}'; choose one of {', '.join(SENSOR_NAMES)}")
-    return sensor
+    return one_of(SENSORS, LEGACY_PATTERNS.get(name, name), "sensor")
 
 
 def beam_directions(

@@ -31,6 +31,7 @@ from slam6d.relax import (
     carry_forward,
     check_cancel,
     check_graph,
+    measured_result,
     pair_residual,
     set_up,
 )
@@ -137,12 +138,4 @@ def simultaneous_matching(
         if progress is not None:
             progress(pops, result.rms, [k])
     after = carry_forward(before, current, chosen)
-    return RelaxationResult(
-        poses=after,
-        residual_before=residual_before,
-        residual_after=pair_residual(models, after, pairs),
-        iterations=pops,
-        method="simultaneous",
-        neighbours=pairs,
-        seconds=time.perf_counter() - began,
-    )
+    return measured_result(models, pairs, after, residual_before, pops, "simultaneous", began)

@@ -26,6 +26,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import NDArray
 
+from slam6d.errors import one_of
 from slam6d.geometry import rot_z
 from slam6d.routes import LoopPath, Route, Terrain, Tour, Waypoint
 from slam6d.scene_mesh import MeshBuilder, Scene
@@ -524,9 +525,7 @@ WORLD_NAMES = tuple(WORLDS)
 
 
 def get_world(name: str) -> World:
-    if name not in WORLDS:
-        raise ValueError(f"unknown world '{name}'; choose one of {', '.join(WORLD_NAMES)}")
-    return WORLDS[name]
+    return one_of(WORLDS, name, "world")
 
 
 def build_scene(config: SimulationConfig, rng: np.random.Generator) -> Scene:

@@ -40,12 +40,12 @@ def test_replay_moves_the_scans_to_the_stored_run_poses(viewer):
     replay.refresh()
     assert replay.trace.value == job.result["trace"]
     replay._load()
-    assert np.allclose(viewer.poses[2], workbench.state("corridor").session.poses(0)[2])  # back at the start
+    assert np.allclose(viewer.scans.poses[2], workbench.state("corridor").session.poses(0)[2])  # back at the start
     steps = 0
     while replay._next():
         steps += 1
     assert steps == len(replay.frames) > 5
-    for shown, stored in zip(viewer.poses, committed, strict=True):
+    for shown, stored in zip(viewer.scans.poses, committed, strict=True):
         assert np.allclose(shown, stored, atol=1e-9)
     assert "end of the run" in replay.status.content or "finished" in replay.status.content
 
@@ -62,8 +62,8 @@ def test_gizmo_move_and_displacement_colours(viewer):
     assert "residuals jumped" in viewer.controls.warnings.content  # the guardrail is on screen
     loops.by_displacement.value = True
     loops._colour()
-    assert set(viewer.highlight) == {0, 1, 2}
-    assert viewer.highlight[1] != viewer.highlight[0]  # the moved scan is coloured apart
+    assert set(viewer.colouring.highlight) == {0, 1, 2}
+    assert viewer.colouring.highlight[1] != viewer.colouring.highlight[0]  # the moved scan is coloured apart
     assert "1.50 m" in loops.legend.content
 
 
@@ -72,14 +72,14 @@ def test_a_component_is_shown_apart_and_carried_along_with_a_dragged_scan(viewer
 
     edit, loops, pieces = panel(viewer, "EdgesPanel"), panel(viewer, "LoopsPanel"), panel(viewer, "ComponentsPanel")
     pieces.refresh()  # lum (the default) finds its graph from the scans: only when asked or after a failed run
-    assert viewer.component_of == {} and "Choose *Colour by* `component`" in pieces.message.content
+    assert viewer.colouring.component_of == {} and "Choose *Colour by* `component`" in pieces.message.content
     editor_for(viewer.workbench).edges.delete("corridor", 0, "ana")  # the edge 0-1: pieces [0] and [1, 2]
     loops.method.value = "graph"  # the components of the graph that graph relaxation would use
     pieces.refresh()
-    assert viewer.component_of == {0: 0, 1: 1, 2: 1}
+    assert viewer.colouring.component_of == {0: 0, 1: 1, 2: 1}
     assert "2 components [0]; [1-2]" in pieces.message.content
     assert viewer.controls.colour.value == "component"
-    assert viewer.scan_colours(1) == viewer.scan_colours(2) != viewer.scan_colours(0)
+    assert viewer.colouring.scan_colours(1) == viewer.colouring.scan_colours(2) != viewer.colouring.scan_colours(0)
 
     before = viewer.state.session.poses()
     edit.scan_a.value = 1
@@ -104,7 +104,7 @@ def test_a_failed_run_with_pieces_turns_the_component_colours_on_with_its_reason
     workbench.commit("corridor", poses, "ana", "register", {"failure": failure, "components": [[0, 1], [2]]})
     pieces = panel(viewer, "ComponentsPanel")
     pieces.refresh()  # lum (the default): computed because the revision comes from a failed run
-    assert viewer.component_of == {0: 0, 1: 0, 2: 1}
+    assert viewer.colouring.component_of == {0: 0, 1: 0, 2: 1}
     assert viewer.controls.colour.value == "component"
     assert pieces.message.content.startswith(
         "**⚠ the relaxation stage failed (revision 1): the pose graph is disconnected. "

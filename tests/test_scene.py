@@ -123,12 +123,12 @@ def _edge_colours_when_computed(view):  # type: ignore[no-untyped-def]
     import time
 
     deadline = time.monotonic() + 30
-    while view.edge_residual_version != view.pose_version:
+    while view.graph.edge_residual_version != view.scans.pose_version:
         assert time.monotonic() < deadline, "edge residuals never arrived"
         time.sleep(0.05)
     with view.lock:  # the residuals and the edges drawn with them are set together under it
-        colours = view.edge_colours["/graph/trajectory"]
-        drawn = {tuple(int(c) for c in node.colors) for node in view.edge_nodes["all"]}
+        colours = view.graph.edge_colours["/graph/trajectory"]
+        drawn = {tuple(int(c) for c in node.colors) for node in view.graph.edge_nodes}
         assert {tuple(int(c) for c in rgb) for rgb in colours} <= drawn  # each shade is drawn
         return colours
 
@@ -138,17 +138,17 @@ def test_the_view_recolours_an_edge_when_a_scan_moves_off(corridor_view):
     before = _edge_colours_when_computed(view)
     assert np.abs(before[0].astype(int) - before[1]).max() <= 10  # both edges agree about as well
     assert "worst" in view.controls.edge_legend.content
-    moved = [p.copy() for p in view.poses]
+    moved = [p.copy() for p in view.scans.poses]
     moved[2] = moved[2] @ pose_from_xyzrpy(0.3, 0.2, 0, 0, 0, 0.05)
     view.set_poses(moved)
-    view.draw_graph()  # what a new revision does
+    view.graph.draw()  # what a new revision does
     after = _edge_colours_when_computed(view)
     assert np.array_equal(after[0], before[0])  # the untouched edge keeps its colour
-    position = np.linspace(0, view.edge_scale, 101)  # where on the edge scale each colour sits
-    ramp = display.edge_colours(position, view.edge_scale)[:, 0].astype(int)
+    position = np.linspace(0, view.graph.edge_scale, 101)  # where on the edge scale each colour sits
+    ramp = display.edge_colours(position, view.graph.edge_scale)[:, 0].astype(int)
     where = [position[np.abs(ramp - c.astype(int)).sum(axis=1).argmin()] for c in (after[0], after[1])]
-    assert where[1] > where[0] + 0.4 * view.edge_scale  # the moved one: far up the scale
-    assert view.edge_residuals[(1, 2)] > 3 * view.edge_residuals[(0, 1)]
+    assert where[1] > where[0] + 0.4 * view.graph.edge_scale  # the moved one: far up the scale
+    assert view.graph.edge_residuals[(1, 2)] > 3 * view.graph.edge_residuals[(0, 1)]
     assert "worst 1–2" in view.controls.edge_legend.content
 
 
@@ -163,25 +163,25 @@ def test_clicking_scans_in_the_view_picks_a_then_b_and_highlights_them(corridor_
 
     view = corridor_view
     edit = next(p for p in view.panels if isinstance(p, EdgesPanel))
-    apart = [p.copy() for p in view.poses]
+    apart = [p.copy() for p in view.scans.poses]
     for k, p in enumerate(apart):
         p[2, 3] += 40.0 * k  # the corridor scans overlap; stack them 40 m apart to click one alone
     view.set_poses(apart)
     camera = np.array([10.0, -80.0, 40.0])
-    centres = [view.local[k].astype(float).mean(axis=0) @ apart[k][:3, :3].T + apart[k][:3, 3] for k in range(3)]
+    centres = [view.scans.local[k].astype(float).mean(axis=0) @ apart[k][:3, :3].T + apart[k][:3, 3] for k in range(3)]
     painted = []
-    view.paint = lambda k: painted.append(k)  # type: ignore[method-assign]  # what would be resent
+    view.colouring.paint = lambda k: painted.append(k)  # type: ignore[method-assign]  # what would be resent
 
     edit._clicked(_Click(camera, centres[2] - camera))
-    assert int(edit.scan_a.value) == 2 and view.selected == {2: PICKED_A}  # B not chosen yet: not marked
+    assert int(edit.scan_a.value) == 2 and view.colouring.selected == {2: PICKED_A}  # B not chosen yet: not marked
     assert "Picked scan **2**" in edit.pick_status.content and "as **A**" in edit.pick_status.content
     edit._clicked(_Click(camera, centres[0] - camera))
     assert (int(edit.scan_a.value), int(edit.scan_b.value)) == (2, 0)
-    assert view.selected == {2: PICKED_A, 0: PICKED_B}
+    assert view.colouring.selected == {2: PICKED_A, 0: PICKED_B}
     assert (
-        view.scan_colours(0) == PICKED_B
-        and view.scan_colours(2) == PICKED_A
-        and view.scan_colours(1) == display.scan_color(1)
+        view.colouring.scan_colours(0) == PICKED_B
+        and view.colouring.scan_colours(2) == PICKED_A
+        and view.colouring.scan_colours(1) == display.scan_color(1)
     )
     assert 0 in painted and 2 in painted
     edit._clicked(_Click(camera, (0.0, -1.0, 0.5)))  # away from the map: nothing picked, nothing changed
@@ -191,27 +191,27 @@ def test_clicking_scans_in_the_view_picks_a_then_b_and_highlights_them(corridor_
 def test_playing_draws_the_current_pair_in_full_and_the_rest_light_without_resending(corridor_view, monkeypatch):
     view = corridor_view
     monkeypatch.setattr(display, "PLAYBACK_BUDGET", 900)
-    full = [len(p) for p in view.local]
+    full = [len(p) for p in view.scans.local]
     view.begin_playback([2, 1])
-    assert [n.visible for n in view.nodes] == [False, True, True]
-    assert set(view.light) == {0} and view.light[0][0].visible
-    light_points = len(view.light[0][0].points)
+    assert [n.visible for n in view.scans.nodes] == [False, True, True]
+    assert set(view.scans.light) == {0} and view.scans.light[0][0].visible
+    light_points = len(view.scans.light[0][0].points)
     assert 0 < light_points <= 900 // 3 < full[0]
     # moving the current scan sends its pose to its full node only; the light node is not re-sent
-    sent = view.light[0][0]
-    moved = [p.copy() for p in view.poses]
+    sent = view.scans.light[0][0]
+    moved = [p.copy() for p in view.scans.poses]
     moved[2] = moved[2] @ pose_from_xyzrpy(0.1, 0, 0, 0, 0, 0.02)
     view.set_poses(moved, [2])
-    np.testing.assert_allclose(view.nodes[2].position, moved[2][:3, 3])
+    np.testing.assert_allclose(view.scans.nodes[2].position, moved[2][:3, 3])
     # the pair moves on: scan 1 becomes light, scan 0 full again; existing light nodes are reused
     view.begin_playback([0])
-    assert [n.visible for n in view.nodes] == [True, False, False]
-    assert view.light[0][0] is sent and not sent.visible and view.light[2][0].visible
-    np.testing.assert_allclose(view.light[2][0].position, moved[2][:3, 3])  # shown where the scan now is
+    assert [n.visible for n in view.scans.nodes] == [True, False, False]
+    assert view.scans.light[0][0] is sent and not sent.visible and view.scans.light[2][0].visible
+    np.testing.assert_allclose(view.scans.light[2][0].position, moved[2][:3, 3])  # shown where the scan now is
     view.end_playback()
-    assert view.focus is None and all(n.visible for n in view.nodes)
-    assert not any(node.visible for node, _ in view.light.values())
-    assert [len(n.points) for n in view.nodes] == full  # the whole budget is back, never re-sent
+    assert view.scans.focus is None and all(n.visible for n in view.scans.nodes)
+    assert not any(node.visible for node, _ in view.scans.light.values())
+    assert [len(n.points) for n in view.scans.nodes] == full  # the whole budget is back, never re-sent
 
 
 def test_stepper_play_enters_playback_and_pause_leaves_it(corridor_view):
@@ -225,11 +225,11 @@ def test_stepper_play_enters_playback_and_pause_leaves_it(corridor_view):
         assert time.monotonic() < deadline, "stepping did not start"
         time.sleep(0.05)
     stepper.pause()
-    assert view.focus is None and all(n.visible for n in view.nodes)
+    assert view.scans.focus is None and all(n.visible for n in view.scans.nodes)
     stepper.play(rate=5.0)
-    assert view.focus == stepper._focus() and stepper.current in view.focus
+    assert view.scans.focus == stepper._focus() and stepper.current in view.scans.focus
     stepper.pause()
-    assert view.focus is None
+    assert view.scans.focus is None
 
 
 def test_edge_residual_tells_aligned_sparse_scans_from_misaligned_ones():
@@ -265,7 +265,7 @@ def test_a_reopened_view_reads_the_levels_of_the_first_open_without_recomputing(
         app = create_app(tmp_path / "sessions", limits=ResourceLimits(viewer_grace_s=3600))
         view = app.state.viewers.get("corridor")
         assert view.ready.wait(30) and view.error is None
-        shown.append([p.copy() for p in view.local])
+        shown.append([p.copy() for p in view.scans.local])
         app.state.viewers.stop_all()
     assert all(np.array_equal(a, b) for a, b in zip(*shown, strict=True))
 
@@ -276,16 +276,18 @@ def _never_recomputed(*args, **kwargs):  # type: ignore[no-untyped-def]
 
 def test_a_smaller_budget_coarsens_the_map_and_a_picked_scan_is_shown_in_full(corridor_view):
     view = corridor_view
-    detail = view.detail
-    full = [len(p) for p in view.local]
+    detail = view.stream.detail
+    full = [len(p) for p in view.scans.local]
     assert full == [detail.levels.level_points[k][-1] for k in range(3)]  # 60k points: all fit the budget
     with view.lock:
         view.controls.budget.value = 10_000
     detail.refresh()
-    coarse = [len(p) for p in view.local]
+    coarse = [len(p) for p in view.scans.local]
     assert sum(coarse) <= 10_000 and all(c < f for c, f in zip(coarse, full, strict=True))
-    view.select({1: (255, 255, 255)})
+    view.colouring.select({1: (255, 255, 255)})
     detail.refresh()
-    assert len(view.local[1]) == full[1]  # picked for editing: every point
-    assert [len(p) for p in view.local] == [detail.levels.level_points[k][lv] for k, lv in enumerate(detail.shown)]
-    assert view.nodes[1].colors.tolist() == [255, 255, 255]  # the resent node keeps the pick colour
+    assert len(view.scans.local[1]) == full[1]  # picked for editing: every point
+    assert [len(p) for p in view.scans.local] == [
+        detail.levels.level_points[k][lv] for k, lv in enumerate(detail.shown)
+    ]
+    assert view.scans.nodes[1].colors.tolist() == [255, 255, 255]  # the resent node keeps the pick colour

@@ -1,7 +1,7 @@
 """Which pieces a session's relaxation would see: the connected components of its graph, and the last failed run.
 
 A registration whose relaxation found the graph disconnected keeps its poses as a revision and
-names the components in its journal entry (:func:`app.registration.keep_partial_run`). The operator
+names the components in its journal entry (:meth:`app.registration.RunCommit.keep_partial`). The operator
 then bridges them by hand (an edge between two picked scans, a dragged scan matched from there) and
 relaxes again; this module answers, for the head revision, which components the chosen method's graph
 has now (:func:`slam6d.relaxation_methods.relaxation_components`) and which failure the revision

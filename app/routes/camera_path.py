@@ -24,7 +24,7 @@ from app.fly_through import (
     saved_path,
     start_render,
 )
-from app.routes.dependencies import REQUIRE_SESSION, Author, SessionDep, WorkbenchDep
+from app.routes.dependencies import REQUIRE_SESSION, Actor, ActorDep, SessionDep
 from app.validation import MAX_INDEX, IndexPath, Point, Quaternion, RequestBody
 from slam6d.camera_path import Keyframe
 from slam6d.session import Session
@@ -65,12 +65,10 @@ def _path_response(session: Session) -> dict[str, Any]:
     }
 
 
-def _edit(
-    workbench: WorkbenchDep, session_id: str, change: Callable[[list[Keyframe]], object], author: str
-) -> dict[str, Any]:
+def _edit(actor: Actor, change: Callable[[list[Keyframe]], object]) -> dict[str, Any]:
     """Apply ``change`` to the keyframes as stored when it is written (nobody else's edit is lost):
     404 for a keyframe index outside the path, 422 for a keyframe the camera path refuses."""
-    session = workbench.state(session_id).session
+    session = actor.workbench.state(actor.session_id).session
     count = 0
 
     def checked(keyframes: list[Keyframe]) -> None:
@@ -79,7 +77,7 @@ def _edit(
         change(keyframes)
 
     try:
-        change_keyframes(workbench, session_id, checked, author)
+        change_keyframes(actor.workbench, actor.session_id, checked, actor.author)
     except IndexError:
         raise EditError(f"no such keyframe; the path has {count}", 404) from None
     except ValueError as exc:
@@ -100,21 +98,17 @@ def get_camera_path(state: SessionDep) -> dict[str, Any]:
 
 
 @router.put("/camera-path")
-def put_camera_path(
-    session_id: str, body: KeyframeList, workbench: WorkbenchDep, author: Author = "anonymous"
-) -> dict[str, Any]:
+def put_camera_path(body: KeyframeList, actor: ActorDep) -> dict[str, Any]:
     """Replace all keyframes (an empty list goes back to the default path)."""
 
     def replace(keyframes: list[Keyframe]) -> None:
         keyframes[:] = [k.keyframe() for k in body.keyframes]
 
-    return _edit(workbench, session_id, replace, author)
+    return _edit(actor, replace)
 
 
 @router.post("/camera-path/keyframes", status_code=201)
-def add_keyframe(
-    session_id: str, body: KeyframeBody, workbench: WorkbenchDep, author: Author = "anonymous"
-) -> dict[str, Any]:
+def add_keyframe(body: KeyframeBody, actor: ActorDep) -> dict[str, Any]:
     """Insert a keyframe (given by orientation or by a point to look at) before ``index``, or append it."""
 
     def add(keyframes: list[Keyframe]) -> None:
@@ -123,38 +117,28 @@ def add_keyframe(
             raise IndexError(index)
         keyframes.insert(index, body.keyframe())
 
-    return _edit(workbench, session_id, add, author)
+    return _edit(actor, add)
 
 
 @router.post("/camera-path/keyframes/{index}/move")
-def move_keyframe(
-    session_id: str,
-    index: IndexPath,
-    body: MoveBody,
-    workbench: WorkbenchDep,
-    author: Author = "anonymous",
-) -> dict[str, Any]:
+def move_keyframe(index: IndexPath, body: MoveBody, actor: ActorDep) -> dict[str, Any]:
     """Move keyframe ``index`` to position ``to``."""
 
     def move(keyframes: list[Keyframe]) -> None:
         keyframes.insert(_at(keyframes, body.to), keyframes.pop(_at(keyframes, index)))
 
-    return _edit(workbench, session_id, move, author)
+    return _edit(actor, move)
 
 
 @router.delete("/camera-path/keyframes/{index}")
-def delete_keyframe(
-    session_id: str, index: IndexPath, workbench: WorkbenchDep, author: Author = "anonymous"
-) -> dict[str, Any]:
-    return _edit(workbench, session_id, lambda keyframes: keyframes.pop(_at(keyframes, index)), author)
+def delete_keyframe(index: IndexPath, actor: ActorDep) -> dict[str, Any]:
+    return _edit(actor, lambda keyframes: keyframes.pop(_at(keyframes, index)))
 
 
 @router.post("/render", status_code=202)
-def post_render(
-    session_id: str, body: RenderRequest, workbench: WorkbenchDep, author: Author = "anonymous"
-) -> dict[str, Any]:
+def post_render(body: RenderRequest, actor: ActorDep) -> dict[str, Any]:
     """Render a fly-through MP4 in the background; poll ``GET /api/jobs/{id}``, cancel with ``DELETE``."""
-    return start_render(workbench, session_id, body, author).as_dict()
+    return start_render(actor.workbench, actor.session_id, body, actor.author).as_dict()
 
 
 @router.get("/renders")

@@ -10,7 +10,7 @@ from pydantic import BaseModel, Field
 
 from app.comments import Anchor, Status, add_comment, placed_comments, set_status
 from app.guard import requires
-from app.routes.dependencies import Author, SessionDep, WorkbenchDep
+from app.routes.dependencies import ActorDep, SessionDep
 from app.tokens import Role
 
 router = APIRouter(prefix="/api/sessions/{session_id}", tags=["comments"])
@@ -32,25 +32,16 @@ def list_comments(state: SessionDep, rev: Annotated[int | None, Query(ge=0)] = N
 
 
 @router.post("/comments", status_code=201, openapi_extra=requires(Role.reviewer))
-def create_comment(
-    session_id: str, body: CommentRequest, state: SessionDep, workbench: WorkbenchDep, author: Author = "anonymous"
-) -> dict[str, Any]:
+def create_comment(body: CommentRequest, state: SessionDep, actor: ActorDep) -> dict[str, Any]:
     """A new open comment; a scan's ``point`` is in that scan's own frame, so the note moves with the scan."""
-    added = add_comment(state.session, body.anchor, body.text, author)
-    workbench.notify(session_id)  # the 3D views redraw their labels
+    added = add_comment(state.session, body.anchor, body.text, actor.author)
+    actor.notify()  # the 3D views redraw their labels
     return added
 
 
 @router.post("/comments/{comment_id}/status", openapi_extra=requires(Role.reviewer))
-def change_status(
-    session_id: str,
-    comment_id: int,
-    body: StatusRequest,
-    state: SessionDep,
-    workbench: WorkbenchDep,
-    author: Author = "anonymous",
-) -> dict[str, Any]:
+def change_status(comment_id: int, body: StatusRequest, state: SessionDep, actor: ActorDep) -> dict[str, Any]:
     """Resolve (or reopen) a comment."""
-    changed = set_status(state.session, comment_id, body.status, author)
-    workbench.notify(session_id)
+    changed = set_status(state.session, comment_id, body.status, actor.author)
+    actor.notify()
     return changed

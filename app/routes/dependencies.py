@@ -6,11 +6,13 @@ its error live here once (the status itself is chosen in :mod:`app.routes.errors
 
 from __future__ import annotations
 
-from typing import Annotated
+from dataclasses import dataclass
+from typing import Annotated, Any
 
 from fastapi import Depends, Header, Request
 
 from app.editing import Editor, editor_for
+from app.jobs import Work
 from app.workbench import SessionState, Workbench
 
 
@@ -37,3 +39,28 @@ REQUIRE_SESSION = Depends(session_state)
 EditorDep = Annotated[Editor, Depends(get_editor)]
 # who made an edit: the web pages send the name the user typed, so the journal says who did what
 Author = Annotated[str, Header(alias="X-Author", max_length=100)]
+
+
+@dataclass(frozen=True)
+class Actor:
+    """Who acts on the session named in the path (the name their page sends), and the workbench they act
+    through: what every route that changes a session needs, taken from the request once."""
+
+    workbench: Workbench
+    session_id: str
+    author: str
+
+    def start_job(self, kind: str, work: Work, parameters: dict[str, Any] | None = None) -> dict[str, Any]:
+        """Background work on the session (routes answering 202); polled at ``GET /api/jobs/{id}``."""
+        return self.workbench.jobs.submit(self.session_id, kind, work, self.author, parameters or {}).as_dict()
+
+    def notify(self) -> None:
+        """Tell the session's 3D views that something they draw changed."""
+        self.workbench.notify(self.session_id)
+
+
+def actor(session_id: str, workbench: WorkbenchDep, author: Author = "anonymous") -> Actor:
+    return Actor(workbench, session_id, author)
+
+
+ActorDep = Annotated[Actor, Depends(actor)]

@@ -14,7 +14,7 @@ from pydantic import Field
 from app.errors import EditError, WorkbenchError
 from app.jobs import Cancel, Progress, Work
 from app.registration import registration_job
-from app.routes.dependencies import Author, SessionDep, WorkbenchDep
+from app.routes.dependencies import ActorDep, SessionDep, WorkbenchDep
 from app.validation import RequestBody
 from app.workbench import SessionState
 from slam6d.errors import Cancelled
@@ -51,17 +51,15 @@ def reload_job(state: SessionState, parameters: dict[str, Any]) -> Work:
 
 
 @router.post("/sessions/{session_id}/jobs", status_code=202)
-def start_job(
-    session_id: str, body: JobRequest, state: SessionDep, workbench: WorkbenchDep, author: Author = "anonymous"
-) -> dict[str, Any]:
+def start_job(body: JobRequest, state: SessionDep, actor: ActorDep) -> dict[str, Any]:
     """Start background work on the session; poll ``GET /api/jobs/{id}``, cancel with ``DELETE``."""
     if body.kind == "reload":
         work = reload_job(state, body.parameters)
     elif body.kind == "register":
-        work = registration_job(workbench, session_id, author, body.parameters)
+        work = registration_job(actor.workbench, actor.session_id, actor.author, body.parameters)
     else:
         raise WorkbenchError(f"unknown job kind '{body.kind}'; known: register, reload")
-    return workbench.jobs.submit(session_id, body.kind, work, author, body.parameters).as_dict()
+    return actor.start_job(body.kind, work, body.parameters)
 
 
 @router.get("/jobs/{job_id}")

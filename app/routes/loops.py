@@ -12,7 +12,7 @@ from typing import Any, Literal
 from fastapi import APIRouter
 
 from app.guard import requires
-from app.routes.dependencies import REQUIRE_SESSION, Author, EditorDep, WorkbenchDep
+from app.routes.dependencies import REQUIRE_SESSION, ActorDep, Author, EditorDep
 from app.tokens import Role
 from app.validation import IndexPath
 
@@ -26,12 +26,9 @@ def loops(session_id: str, editor: EditorDep) -> list[dict[str, Any]]:
 
 
 @router.post("/loops/detect", status_code=202)
-def detect_loops(
-    session_id: str, editor: EditorDep, workbench: WorkbenchDep, author: Author = "anonymous"
-) -> dict[str, Any]:
+def detect_loops(session_id: str, editor: EditorDep, actor: ActorDep) -> dict[str, Any]:
     """Find and verify loop hypotheses from the current poses (a job); the result is the review list."""
-    work = editor.loops.detect_job(session_id, author)
-    return workbench.jobs.submit(session_id, "detect-loops", work, author, {}).as_dict()
+    return actor.start_job("detect-loops", editor.loops.detect_job(session_id, actor.author))
 
 
 @router.post("/loops/{k}/{decision}", openapi_extra=requires(Role.reviewer))
@@ -48,9 +45,6 @@ def decide_loop(
 
 
 @router.post("/close-loops", status_code=202)
-def close_loops(
-    session_id: str, editor: EditorDep, workbench: WorkbenchDep, author: Author = "anonymous"
-) -> dict[str, Any]:
+def close_loops(session_id: str, editor: EditorDep, actor: ActorDep) -> dict[str, Any]:
     """Error diffusion over the accepted loop and manual edges (a job)."""
-    work = editor.relaxation.close_loops_job(session_id, author)
-    return workbench.jobs.submit(session_id, "close-loops", work, author, {}).as_dict()
+    return actor.start_job("close-loops", editor.relaxation.close_loops_job(session_id, actor.author))

@@ -11,7 +11,7 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Query
 from pydantic import Field
 
-from app.routes.dependencies import REQUIRE_SESSION, Author, EditorDep, SessionDep, WorkbenchDep
+from app.routes.dependencies import REQUIRE_SESSION, ActorDep, EditorDep, SessionDep
 from app.validation import MAX_INDEX, Index, RequestBody, RevisionQuery
 from slam6d.residuals import displacements
 
@@ -28,17 +28,12 @@ class RelaxRequest(RequestBody):
 
 
 @router.post("/relax", status_code=202)
-def relax(
-    session_id: str,
-    editor: EditorDep,
-    workbench: WorkbenchDep,
-    body: RelaxRequest | None = None,
-    author: Author = "anonymous",
-) -> dict[str, Any]:
+def relax(session_id: str, editor: EditorDep, actor: ActorDep, body: RelaxRequest | None = None) -> dict[str, Any]:
     """Global relaxation (a job); 409 with the reason when the graph is disconnected or nothing is fixed."""
     body = body or RelaxRequest()
-    work = editor.relaxation.relax_job(session_id, author, body.method, body.fixed)
-    return workbench.jobs.submit(session_id, "relax", work, author, body.model_dump()).as_dict()
+    return actor.start_job(
+        "relax", editor.relaxation.relax_job(session_id, actor.author, body.method, body.fixed), body.model_dump()
+    )
 
 
 @router.get("/residuals")

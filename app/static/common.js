@@ -38,3 +38,20 @@ export async function api(path, options = {}) {
   }
   return answer;
 }
+
+// A form that keeps the page: `send` gets the form's fields (and the form); what it throws is shown in
+// `errorOut`, so every form reports a refused request the same way.
+export function onSubmit(form, errorOut, send) {
+  form.addEventListener("submit", async (event) => {
+    event.preventDefault();
+    try { await send(new FormData(form), form); } catch (err) { errorOut.textContent = err.message; }
+  });
+}
+
+// A header button that opens and closes a panel; opening it refreshes what the panel lists.
+export function togglePanel(button, panel, refresh, errorOut) {
+  button.onclick = async () => {
+    panel.hidden = !panel.hidden;
+    if (!panel.hidden) await refresh().catch((err) => { errorOut.textContent = err.message; });
+  };
+}

@@ -11,6 +11,7 @@ import viser
 
 from app.view import display
 
+NO_CHOICE = "—"  # a panel's dropdown entry while there is nothing to choose
 COLOUR_MODES = ("scan", "height", "residual", "component")  # component: app.view.panels.components
 
 

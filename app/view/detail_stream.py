@@ -24,7 +24,8 @@ import numpy as np
 import viser
 
 from app.view import display
-from app.view.core import ViewCore
+from app.view.colouring import Colouring
+from app.view.core import ShownScans, ViewContext, send_cloud, show_status
 from app.view.detail_levels import choose_levels, points_at
 from slam6d.geometry import Matrix
 from slam6d.scan_levels import ScanLevels
@@ -36,8 +37,17 @@ _POLL = 0.5  # s: how often picked scans are checked for (picking changes no cam
 class DetailStream:
     """The level each scan is shown at, and the thread that changes them as cameras move (module docstring)."""
 
-    def __init__(self, viewer: ViewCore, levels: ScanLevels, full: Callable[[], Collection[int]]) -> None:
-        self.viewer = viewer
+    def __init__(
+        self,
+        view: ViewContext,
+        scans: ShownScans,
+        colouring: Colouring,
+        levels: ScanLevels,
+        full: Callable[[], Collection[int]],
+    ) -> None:
+        self.view = view
+        self.scans = scans
+        self.colouring = colouring
         self.levels = levels
         self.full = full  # scans to show in full resolution (picked for editing)
         self.shown: list[int] = []  # level per scan, as last sent
@@ -54,7 +64,7 @@ class DetailStream:
         """The camera the levels follow: the last one moved, else where every browser starts."""
         if self.camera is not None:
             return self.camera
-        return np.asarray(self.viewer.server.initial_camera.position, dtype=np.float64)
+        return np.asarray(self.view.server.initial_camera.position, dtype=np.float64)
 
     def choose(self, budget: int, poses: Sequence[Matrix]) -> list[int]:
         """Levels for ``budget`` points at ``poses``, by distance from :meth:`camera_position`."""
@@ -87,7 +97,7 @@ class DetailStream:
 
     def follow(self) -> None:
         """Listen to every browser's camera and start the thread that refines the map after a move."""
-        self.viewer.server.on_client_connect(self._listen)
+        self.view.server.on_client_connect(self._listen)
         self._thread = threading.Thread(target=self._run, name="viewer-detail", daemon=True)
         self._thread.start()
 
@@ -99,11 +109,11 @@ class DetailStream:
         self._moved.set()
 
     def _run(self) -> None:
-        viewer = self.viewer
-        while not viewer.stopped:
+        view = self.view
+        while not view.stopped:
             if self._moved.wait(_POLL):
                 # debounce: wait until the camera has been still for SETTLE
-                while not viewer.stopped and self._moved.wait(SETTLE):
+                while not view.stopped and self._moved.wait(SETTLE):
                     self._moved.clear()
             try:
                 self.refresh()
@@ -112,40 +122,41 @@ class DetailStream:
 
     def refresh(self) -> None:
         """Choose the levels again and send the scans whose level changed."""
-        viewer = self.viewer
-        if viewer.focus is not None or not viewer.ready.is_set() or viewer.error or not self.shown:
+        view = self.view
+        if self.scans.focus is not None or not view.ready.is_set() or view.error or not self.shown:
             return
-        with viewer.lock:
-            if viewer.stopped:
+        with view.lock:
+            if view.stopped:
                 return
-            levels = self.choose(int(viewer.controls.budget.value), viewer.poses)
+            levels = self.choose(int(view.controls.budget.value), self.scans.poses)
             changed = [k for k, level in enumerate(levels) if level != self.shown[k]]
             if changed:
                 self.resend(changed, levels)
 
     def resend(self, scans: Sequence[int], levels: Sequence[int]) -> None:
         """Send ``scans`` again at ``levels`` (one atomic batch); their nodes are replaced in place."""
-        viewer = self.viewer
-        residual = viewer.controls.colour.value == "residual" and viewer.residuals is not None
-        viewer.residuals = None  # per shown point: the changed scans' no longer match
-        with viewer.server.atomic():
+        view, shown, colouring = self.view, self.scans, self.colouring
+        residual = view.controls.colour.value == "residual" and colouring.residuals is not None
+        colouring.scans_moved()  # per shown point: the changed scans' residuals no longer match
+        with view.server.atomic():
             for k in scans:
-                viewer.local[k] = self.levels.points(k, levels[k])
+                shown.local[k] = self.levels.points(k, levels[k])
                 self.shown[k] = levels[k]
-                if k in viewer.light:  # playback's light copy indexes the old points
-                    viewer.light.pop(k)[0].remove()
-                name = viewer.nodes[k].name
-                viewer.nodes[k] = viewer.add_cloud(
+                if k in shown.light:  # playback's light copy indexes the old points
+                    shown.light.pop(k)[0].remove()
+                name = shown.nodes[k].name
+                shown.nodes[k] = send_cloud(
+                    view,
                     name,
-                    viewer.local[k],
-                    viewer.scan_colours(k),
-                    viewer.poses[k],
-                    precision=display.precision_for(viewer.local[k]),
+                    shown.local[k],
+                    colouring.scan_colours(k),
+                    shown.poses[k],
+                    precision=display.precision_for(shown.local[k]),
                 )
         self.updates += 1
         if residual:
-            viewer.recolour()
-        viewer.update_status()
+            colouring.recolour()
+        show_status(view, shown)
 
     def as_dict(self) -> dict[str, Any]:
         return {

@@ -25,6 +25,10 @@ PLAYBACK_BUDGET = 10_000  # the map around the current pair while stepping plays
 EDGE_SHADES = 10  # steps of the edge residual scale
 FLOAT16_SAFE_EXTENT = 32.0  # metres: float16 spacing stays under 1.6 cm up to here
 
+# one palette wherever a pair being matched is shown (stepping, replay, octree guess cubes)
+DATA_SCAN = (255, 120, 0)  # the scan being matched
+MODEL_SCANS = (60, 140, 255)  # the scans it is matched against
+
 _RAMP = np.array(  # perceptually ordered blue -> cyan -> green -> yellow -> red
     [[48, 18, 59], [40, 160, 230], [60, 220, 120], [250, 200, 40], [200, 30, 20]], dtype=np.float64
 )
@@ -123,3 +127,8 @@ def edge_colours(residuals: Sequence[float], scale: float) -> NDArray[np.uint8]:
     # from the ramp's cyan up: its dark blue end would vanish against the dark background
     colours = ramp(values, -scale / 3, scale)
     return np.repeat(colours[:, None, :], 2, axis=1)
+
+
+def pair_colours(current: int | None, model: Sequence[int]) -> dict[int, tuple[int, int, int]]:
+    """The highlight of a scan being matched (``current``) and its model scans; none when no scan is."""
+    return {} if current is None else {**dict.fromkeys(model, MODEL_SCANS), current: DATA_SCAN}

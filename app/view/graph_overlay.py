@@ -12,49 +12,44 @@ from typing import Any
 import numpy as np
 
 from app.view import display
-from app.view.core import ViewCore
+from app.view.core import ShownScans, ViewContext
 
 
-class GraphOverlay(ViewCore):
-    edge_residuals: dict[tuple[int, int], float]
-    edge_residual_version: int  # the pose_version edge_residuals were computed for
-    edge_nodes: dict[str, list[Any]]  # "all": the line nodes drawn, one per edge colour
-    edge_colours: dict[str, np.ndarray]  # per kind ("/graph/trajectory", "/graph/loops"), per edge
-    edge_scale: float  # metres: the residual drawn in full red
-    edges_wanted: threading.Event
-    edges_worker: threading.Thread | None
-
-    def init_graph_overlay(self, icp_max_distance: float) -> None:
-        self.edge_residuals = {}
-        self.edge_residual_version = -1
-        self.edge_nodes = {}
-        self.edge_colours = {}
+class GraphOverlay:
+    def __init__(self, view: ViewContext, scans: ShownScans, icp_max_distance: float) -> None:
+        self.view = view
+        self.scans = scans
+        self.edge_residuals: dict[tuple[int, int], float] = {}
+        self.edge_residual_version = -1  # the pose_version edge_residuals were computed for
+        self.edge_nodes: list[Any] = []  # the line nodes drawn, one per edge colour
+        self.edge_colours: dict[str, np.ndarray] = {}  # per kind ("/graph/trajectory", "/graph/loops"), per edge
         # red from a quarter of the ICP pairing distance: an edge's point-to-plane residual (upper
         # quartile) sits near the range noise when its scans agree and reaches centimetres at
         # odometry-level errors
-        self.edge_scale = icp_max_distance / 4
+        self.edge_scale = icp_max_distance / 4  # metres: the residual drawn in full red
         self.edges_wanted = threading.Event()
-        self.edges_worker = None
+        self.edges_worker: threading.Thread | None = None
 
-    def draw_graph(self) -> None:
+    def draw(self) -> None:
         """Trajectory (sequential edges) and loop edges, each coloured by its point-to-plane residual.
 
         The residuals are the editor's per-edge summary (the numbers the "residuals jumped" guardrail
         compares), computed in the background for the poses shown; until they are in, edges are grey.
         """
-        with self.lock:
-            if not self.poses:
+        view, poses = self.view, self.scans.poses
+        with view.lock:
+            if not poses:
                 return
-            origin = self.poses[0][:3, 3]
-            edges = [(e["i"], e["j"], e["kind"]) for e in self.editor.edges.listed(self.session_id)]
-            edges = [e for e in edges if e[0] < len(self.poses) and e[1] < len(self.poses)]
-            known = self.edge_residuals if self.edge_residual_version == self.pose_version else None
-            for node in self.edge_nodes.pop("all", []):
+            origin = poses[0][:3, 3]
+            edges = [(e["i"], e["j"], e["kind"]) for e in view.editor.edges.listed(view.session_id)]
+            edges = [e for e in edges if e[0] < len(poses) and e[1] < len(poses)]
+            known = self.edge_residuals if self.edge_residual_version == self.scans.pose_version else None
+            for node in self.edge_nodes:
                 node.remove()
             drawn: list[Any] = []
             for name, sequential, thickness, toggle in (
-                ("/graph/trajectory", True, 3.0, self.controls.show_trajectory),
-                ("/graph/loops", False, 4.0, self.controls.show_edges),
+                ("/graph/trajectory", True, 3.0, view.controls.show_trajectory),
+                ("/graph/loops", False, 4.0, view.controls.show_edges),
             ):
                 chosen = [(i, j) for i, j, kind in edges if (kind == "sequential") == sequential]
                 if known is None:
@@ -63,13 +58,13 @@ class GraphOverlay(ViewCore):
                     residuals = [known.get((i, j), np.nan) for i, j in chosen]
                     colours = display.edge_colours(residuals, self.edge_scale)[:, 0]
                 self.edge_colours[name] = colours
-                segments = display.segments(chosen, self.poses)
+                segments = display.segments(chosen, poses)
                 # one node per colour: viser's line segments take one colour per node reliably (its
                 # per-vertex uint8 colours reach the browser's line material unnormalised, as white)
                 shades, which = np.unique(colours, axis=0, return_inverse=True) if chosen else (colours, [])
                 for b, shade in enumerate(shades):
                     drawn.append(
-                        self.server.scene.add_line_segments(
+                        view.server.scene.add_line_segments(
                             f"{name}/{b}",
                             segments[np.asarray(which).reshape(-1) == b],
                             colors=display.rgb(shade),
@@ -79,7 +74,7 @@ class GraphOverlay(ViewCore):
                             visible=bool(toggle.value),
                         )
                     )
-            self.edge_nodes["all"] = drawn
+            self.edge_nodes = drawn
             if known is None:
                 self._edge_residuals_later()
             self._edge_legend(known)
@@ -94,28 +89,30 @@ class GraphOverlay(ViewCore):
         if self.edges_worker is not None and self.edges_worker.is_alive():
             return
 
+        view, scans = self.view, self.scans
+
         def work() -> None:
-            self.ready.wait()  # after the full map is sent: the first look at a session comes first
-            while self.edges_wanted.is_set() and not self.stopped:
+            view.ready.wait()  # after the full map is sent: the first look at a session comes first
+            while self.edges_wanted.is_set() and not view.stopped:
                 self.edges_wanted.clear()
-                with self.lock:
-                    version, poses = self.pose_version, [p.copy() for p in self.poses]
+                with view.lock:
+                    version, poses = scans.pose_version, [p.copy() for p in scans.poses]
                 try:
-                    summary = self.editor.context.residuals(self.session_id, poses)
-                    with self.lock:
-                        if self.stopped:
+                    summary = view.editor.context.residuals(view.session_id, poses)
+                    with view.lock:
+                        if view.stopped:
                             return
-                        if version != self.pose_version:
+                        if version != scans.pose_version:
                             continue  # moved meanwhile: the next request (or a redraw) computes them
                         self.edge_residuals = {(int(e["i"]), int(e["j"])): float(e["plane"]) for e in summary.edges}
                         self.edge_residual_version = version
-                        self.draw_graph()
+                        self.draw()
                 except Exception as exc:
-                    if not self.stopped:
-                        self.controls.edge_legend.content = f"Edge residuals unavailable: {exc}"
+                    if not view.stopped:
+                        view.controls.edge_legend.content = f"Edge residuals unavailable: {exc}"
                     return
 
-        self.edges_worker = threading.Thread(target=work, name=f"edge-residuals-{self.session_id}", daemon=True)
+        self.edges_worker = threading.Thread(target=work, name=f"edge-residuals-{view.session_id}", daemon=True)
         self.edges_worker.start()
 
     def _edge_legend(self, known: dict[tuple[int, int], float] | None) -> None:
@@ -125,7 +122,7 @@ class GraphOverlay(ViewCore):
             f"<span style='color:{high}'>■</span> ≥ {self.edge_scale:.2f} m or no overlap"
         )
         if known is None:
-            self.controls.edge_legend.content = f"{scale} · computing…"
+            self.view.controls.edge_legend.content = f"{scale} · computing…"
             return
         finite = {edge: rms for edge, rms in known.items() if np.isfinite(rms)}
         worst = max(known, key=lambda e: np.inf if not np.isfinite(known[e]) else known[e], default=None)
@@ -135,4 +132,4 @@ class GraphOverlay(ViewCore):
             detail = f" · worst {worst[0]}–{worst[1]}: " + (f"{value:.3f} m" if np.isfinite(value) else "no overlap")
         if finite:
             detail += f" · median {np.median(list(finite.values())):.3f} m"
-        self.controls.edge_legend.content = scale + detail
+        self.view.controls.edge_legend.content = scale + detail

@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from app.view.core import ViewCore
+from app.view.core import ShownScans, ViewContext
 from slam6d.geometry import Matrix
 
 
@@ -58,8 +58,12 @@ def pick_scan(
     return min((b for b in best if b[0] <= best_angle + slack), key=lambda b: b[1])[2]
 
 
-class Picking(ViewCore):
+class Picking:
+    def __init__(self, view: ViewContext, scans: ShownScans) -> None:
+        self.view = view
+        self.scans = scans
+
     def pick(self, ray_origin: Any, ray_direction: Any) -> int | None:
         """The scan under a click: tested on the displayed points at the poses shown."""
-        with self.lock:
-            return pick_scan(self.local, self.poses, ray_origin, ray_direction)
+        with self.view.lock:
+            return pick_scan(self.scans.local, self.scans.poses, ray_origin, ray_direction)

@@ -1,6 +1,6 @@
 """Scene streaming: the session's scans sent to the browsers as levels of detail within a point budget, coarse first, then moved by pose.
 
-Scans are sent (at levels of detail read from the session's cache) in their own frame, so the points go over the
+Scans are sent (at levels of detail read from the session's cache, :mod:`app.view.detail_stream`) in their own frame, so the points go over the
 wire once and moving a scan only changes its scene node's pose. This is the only place point data
 is sent; everything else (colours, playback, the graph) changes nodes that are already there.
 """
@@ -10,71 +10,80 @@ from __future__ import annotations
 import threading
 import time
 import traceback
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 
 from app.view import display
-from app.view.core import ViewCore, place
+from app.view.colouring import Colouring
+from app.view.core import ShownScans, ViewContext, place, send_cloud, show_status
 from app.view.detail_stream import DetailStream
 from slam6d.errors import Slam6dError
-from slam6d.geometry import Matrix, rotation_to_quaternion
+from slam6d.geometry import Matrix
 from slam6d.scan_levels import session_levels
 
 _CLIENT_WAIT = 5.0  # s: how long the full pass waits for the browser that opened the session to connect
 _COARSE_SETTLE = 0.5  # s: time for a browser to take in the coarse pass before the full one follows
 
 
-class SceneStream(ViewCore):
-    shown_revision: int  # the journal revision whose poses are shown
-    coarse_points: int  # points of the coarse first pass (0: the budget was sent in one pass)
-    pose_updates: int
-    client_seen: threading.Event  # a browser has connected to this view
-
-    def init_scene_stream(self) -> None:
-        self.local, self.poses, self.nodes = [], [], []
-        self.pose_version = 0
-        self.shown_revision = -1
-        self.coarse_points = 0
+class SceneStream:
+    def __init__(
+        self,
+        view: ViewContext,
+        scans: ShownScans,
+        colouring: Colouring,
+        show_focus: Callable[[list[int]], None],
+        draw_graph: Callable[[], None],
+    ) -> None:
+        self.view = view
+        self.scans = scans
+        self.colouring = colouring
+        self.show_focus = show_focus  # playback's: a re-sent map keeps showing the current pair in full
+        self.draw_graph = draw_graph  # the graph overlay follows the scans
+        self.shown_revision = -1  # the journal revision whose poses are shown
+        self.coarse_points = 0  # points of the coarse first pass (0: the budget was sent in one pass)
         self.pose_updates = 0
-        self.client_seen = threading.Event()
+        self.client_seen = threading.Event()  # a browser has connected to this view
         self.detail: DetailStream | None = None  # the scans' levels of detail, once loaded
         self.coarse_node: Any = None  # the whole map's first look, until the scans' own nodes arrive
 
     def load(self) -> None:
+        view = self.view
         try:
-            session = self.state.session
+            session = view.state.session
             levels = session_levels(
                 session,
-                lambda: self.state.sequence(lambda d, t: self._progress("Reading scans", d, t)).scans,
-                lambda done: self._progress("Levels of detail", done, len(self.state.sequence())),
+                lambda: view.state.sequence(lambda d, t: self._progress("Reading scans", d, t)).scans,
+                lambda done: self._progress("Levels of detail", done, len(view.state.sequence())),
             )
-            # scans picked for editing (the colouring part's ``selected``) are shown in full
-            self.detail = DetailStream(self, levels, lambda: getattr(self, "selected", {}).keys())
+            self.scans.total_points = levels.total_points
+            # scans picked for editing are shown in full
+            self.detail = DetailStream(view, self.scans, self.colouring, levels, lambda: self.colouring.selected.keys())
             budget = int(session.config.engine.get("display_budget", display.DEFAULT_BUDGET))
-            self.controls.budget.value = budget  # type: ignore[misc]
+            view.controls.budget.value = budget  # type: ignore[misc]
             poses = session.poses()
             lo = np.min([p[:3, 3] for p in poses], axis=0)
             hi = np.max([p[:3, 3] for p in poses], axis=0)
             centre = (lo + hi) / 2
             size = max(float(np.linalg.norm(hi - lo)), 20.0)
-            self.server.initial_camera.look_at = centre
-            self.server.initial_camera.position = centre + np.array([-0.4, -0.6, 0.7]) * size
+            view.server.initial_camera.look_at = centre
+            view.server.initial_camera.position = centre + np.array([-0.4, -0.6, 0.7]) * size
             self.rebuild_scans()
             self.detail.follow()
-            self.controls.progress.visible = False
+            view.controls.progress.visible = False
         except Exception as exc:
-            self.error = str(exc)
-            self.controls.status.content = f"**Cannot load this session:** {exc}"
-            self.controls.progress.visible = False
+            view.error = str(exc)
+            view.controls.status.content = f"**Cannot load this session:** {exc}"
+            view.controls.progress.visible = False
             if not isinstance(exc, Slam6dError):
                 traceback.print_exc()
         finally:
-            self.ready.set()
+            view.ready.set()
 
     def _progress(self, stage: str, done: int, total: int) -> None:
-        self.controls.progress.value = 100.0 * done / max(total, 1)  # type: ignore[misc]
-        self.controls.status.content = f"{stage}… {done}/{total}"
+        self.view.controls.progress.value = 100.0 * done / max(total, 1)  # type: ignore[misc]
+        self.view.controls.status.content = f"{stage}… {done}/{total}"
 
     def rebuild_scans(self) -> None:
         """(Re)send every scan at the levels of detail the camera calls for within the budget
@@ -88,31 +97,32 @@ class SceneStream(ViewCore):
         replace it in one atomic batch, so a browser draws the map once per pass, complete, rather
         than redrawing a growing map after each scan.
         """
-        assert self.detail is not None
-        budget = int(self.controls.budget.value)
+        view, scans, detail = self.view, self.scans, self.detail
+        assert detail is not None
+        budget = int(view.controls.budget.value)
         self.coarse_points = 0
-        first = not self.nodes
-        if first and budget > display.COARSE_BUDGET and self.detail.total_points > display.COARSE_BUDGET:
-            poses = self.state.session.poses()
-            points, colours, centre = self.detail.coarse_map(self.detail.choose(display.COARSE_BUDGET, poses), poses)
-            self.coarse_node = self.server.scene.add_point_cloud(
+        first = not scans.nodes
+        if first and budget > display.COARSE_BUDGET and detail.total_points > display.COARSE_BUDGET:
+            poses = view.state.session.poses()
+            points, colours, centre = detail.coarse_map(detail.choose(display.COARSE_BUDGET, poses), poses)
+            self.coarse_node = view.server.scene.add_point_cloud(
                 "/coarse_map",
                 points,
                 colours,
-                point_size=float(self.controls.point_size.value),
+                point_size=float(view.controls.point_size.value),
                 point_shading="flat",
                 position=centre,
             )
             coarse_sent = time.monotonic()
             self.coarse_points = len(points)
-            self.controls.status.content = (
-                f"**{self.state.session.name}** · {len(poses)} scans · coarse view "
+            view.controls.status.content = (
+                f"**{view.state.session.name}** · {len(poses)} scans · coarse view "
                 f"({self.coarse_points:,} points), loading full detail…"
             )
             self._let_browsers_draw_coarse(coarse_sent)
-        self._show_levels(self.detail.choose(budget, self.state.session.poses()), replace=True)
+        self._show_levels(detail.choose(budget, view.state.session.poses()), replace=True)
         self.draw_graph()
-        self.update_status()
+        show_status(view, scans)
 
     def _let_browsers_draw_coarse(self, sent: float) -> None:
         """Hold the full pass until the browser has the coarse one in a batch of its own.
@@ -132,18 +142,17 @@ class SceneStream(ViewCore):
         Without ``replace`` the scans keep the poses they are shown at, which may have moved
         (ICP stepping) since the previous pass was sent.
         """
-        assert self.detail is not None
-        with self.lock:
-            self.local = self.detail.read(levels)
-            self.detail.shown = list(levels)
-            if replace or len(self.poses) != len(self.local):
-                self.poses = [p.copy() for p in self.state.session.poses()]
-                self.pose_version += 1
-            self.residuals = None  # the colouring's per-point residuals belong to the old poses
-            if self.controls.colour.value == "height":
-                self.height_range = display.height_range(self.local, self.poses)
-            self._send_scans(self.detail.levels.names, replace)
-            self.shown_revision = self.state.session.revision
+        scans, detail = self.scans, self.detail
+        assert detail is not None
+        with self.view.lock:
+            scans.local = detail.read(levels)
+            detail.shown = list(levels)
+            if replace or len(scans.poses) != len(scans.local):
+                scans.poses = [p.copy() for p in self.view.state.session.poses()]
+                scans.pose_version += 1
+            self.colouring.scans_replaced()
+            self._send_scans(detail.levels.names, replace)
+            self.shown_revision = self.view.state.session.revision
 
     def _send_scans(self, names: list[str], replace: bool = True) -> None:
         """All scans in one atomic batch, so a browser never draws a scan half-replaced.
@@ -157,76 +166,57 @@ class SceneStream(ViewCore):
         therefore show its first pass in two or three steps. (Hiding the scans until all are sent
         does not work either: viser drops a queued "hidden" when "shown" follows.)
         """
-        with self.server.atomic():
+        scans = self.scans
+        with self.view.server.atomic():
             if self.coarse_node is not None:  # the first look at the whole map gives way to the scans
                 self.coarse_node.remove()
                 self.coarse_node = None
             if replace:
-                for node in self.nodes:
+                for node in scans.nodes:
                     node.remove()
-            for node, _ in self.light.values():
+            for node, _ in scans.light.values():
                 node.remove()
-            self.nodes, self.light = [], {}
-            for k, points in enumerate(self.local):
-                pose = self.poses[k]
-                self.nodes.append(
-                    self.add_cloud(
+            scans.nodes, scans.light = [], {}
+            for k, points in enumerate(scans.local):
+                scans.nodes.append(
+                    send_cloud(
+                        self.view,
                         f"/scans/{names[k] or k}",
                         points,
-                        self.scan_colours(k),
-                        pose,
+                        self.colouring.scan_colours(k),
+                        scans.poses[k],
                         precision=display.precision_for(points),
-                        visible=self.focus is None or k in self.focus,
+                        visible=scans.focus is None or k in scans.focus,
                     )
                 )
-            if self.focus is not None:
-                self.show_focus(self.focus)
-
-    def add_cloud(
-        self,
-        name: str,
-        points: np.ndarray,
-        colours: np.ndarray | tuple[int, int, int],
-        pose: Matrix,
-        precision: str,
-        visible: bool = True,
-    ) -> Any:
-        """A scan's points in its own frame, placed by its pose on the node (never world coordinates)."""
-        return self.server.scene.add_point_cloud(
-            name,
-            points=points,
-            colors=colours,
-            point_size=float(self.controls.point_size.value),
-            point_shading="flat",  # no per-pixel sphere shading: ~15 % faster frames without a GPU
-            precision=precision,  # type: ignore[arg-type]
-            position=pose[:3, 3],
-            wxyz=rotation_to_quaternion(pose[:3, :3]),
-            visible=visible,
-        )
+            if scans.focus is not None:
+                self.show_focus(scans.focus)
 
     def set_point_size(self) -> None:
-        for node in [*self.nodes, *(light for light, _ in self.light.values())]:
-            node.point_size = float(self.controls.point_size.value)
+        size = float(self.view.controls.point_size.value)
+        for node in [*self.scans.nodes, *(light for light, _ in self.scans.light.values())]:
+            node.point_size = size
 
     def set_poses(self, poses: list[Matrix], indices: list[int] | None = None) -> None:
         """Move scan nodes: only position and orientation of the nodes that moved are sent.
 
         One atomic batch, so a browser never draws a scan at a new position with its old rotation.
         """
-        with self.lock, self.server.atomic():
-            if self.stopped:  # a stepper or replay thread may still be mid-step when the view stops
+        scans = self.scans
+        with self.view.lock, self.view.server.atomic():
+            if self.view.stopped:  # a stepper or replay thread may still be mid-step when the view stops
                 return
             moved = False
             for k in range(len(poses)) if indices is None else indices:
                 pose = np.asarray(poses[k], dtype=np.float64)
-                if k >= len(self.nodes) or np.array_equal(pose, self.poses[k]):
+                if k >= len(scans.nodes) or np.array_equal(pose, scans.poses[k]):
                     continue
-                self.poses[k] = pose.copy()
-                place(self.nodes[k], pose)
-                if k in self.light and self.focus is not None and k not in self.focus:
-                    place(self.light[k][0], pose)  # a hidden light node is placed when shown
+                scans.poses[k] = pose.copy()
+                place(scans.nodes[k], pose)
+                if k in scans.light and scans.focus is not None and k not in scans.focus:
+                    place(scans.light[k][0], pose)  # a hidden light node is placed when shown
                 moved = True
             self.pose_updates += 1
             if moved:
-                self.residuals = None
-                self.pose_version += 1
+                self.colouring.scans_moved()
+                scans.pose_version += 1

@@ -1,7 +1,9 @@
 """The 3D view of a session: one viser server per open session, shared by every browser on it.
 
 Everything shown lives in server-side state, so a second browser on the same session sees the
-same map, colours and revision. The view is assembled from parts, one module each:
+same map, colours and revision. The view is composed of parts, one module each, that share the
+session (:class:`app.view.core.ViewContext`) and the scans as shown (:class:`app.view.core.ShownScans`)
+and call each other only through the handles wired here:
 
 * :mod:`app.view.scene_stream` - the scans sent at a point budget, coarse first, moved by pose;
 * :mod:`app.view.detail_stream` - their levels of detail, following the camera;
@@ -11,14 +13,13 @@ same map, colours and revision. The view is assembled from parts, one module eac
 * :mod:`app.view.graph_overlay` - trajectory and loop edges coloured by residual;
 * :mod:`app.view.controls` - the View / Registration / History folders;
 * :mod:`app.view.stepping` - registration one ICP iteration at a time;
+* :mod:`app.view.presence` - who is on the view, their cameras, following;
 * :mod:`app.view.panels` - loops, graph edits, octree guesses, replay, fly-through.
 """
 
 from __future__ import annotations
 
 import threading
-import traceback
-from collections.abc import Callable
 from typing import Any
 
 import viser
@@ -26,7 +27,7 @@ import viser
 from app.editing import editor_for
 from app.registration import registration_job
 from app.view.colouring import Colouring
-from app.view.controls import ViewControls
+from app.view.core import ShownScans, ViewContext, show_status
 from app.view.graph_overlay import GraphOverlay
 from app.view.names import BrowserNames
 from app.view.panels import build_panels
@@ -38,50 +39,45 @@ from app.view.scene_stream import SceneStream
 from app.view.stepping import Stepper
 from app.workbench import Workbench
 from slam6d.engine_settings import pipeline_config
-from slam6d.errors import Slam6dError
-
-# what a button press may run into that the user can act on: shown as the message alone
-USER_ERRORS = (Slam6dError, ValueError)
+from slam6d.geometry import Matrix
 
 
-class SessionViewer(SceneStream, Colouring, Picking, Playback, GraphOverlay):
+class SessionViewer(ViewContext):
+    """The context every part shares, the parts, and the wiring between them and the controls."""
+
     def __init__(self, workbench: Workbench, session_id: str) -> None:
-        self.workbench = workbench
-        self.session_id = session_id
-        self.state = workbench.state(session_id)
-        self.editor = editor_for(workbench)
-        self.server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False, label=self.state.session.name)
-        self.port = self.server.get_port()
-        self.server.scene.set_up_direction("+z")
+        state = workbench.state(session_id)
+        server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False, label=state.session.name)
+        super().__init__(workbench, session_id, editor_for(workbench), server)
+        self.port = server.get_port()
+        server.scene.set_up_direction("+z")
         # no shadow maps: points neither cast nor receive shadows, and rendering the light's shadow
         # cascades is a fixed cost on every frame (large without a GPU)
-        self.server.scene.configure_default_lights(cast_shadow=False)
-        self.server.gui.configure_theme(dark_mode=True, control_width="large")
-        self.lock = threading.RLock()
-        self.ready = threading.Event()
-        self.error: str | None = None
-        self.stopped = False
-        self.init_scene_stream()
-        self.init_colouring()
-        self.init_playback()
-        self.init_graph_overlay(float(pipeline_config(self.state.session.config.engine).icp.max_distance))
+        server.scene.configure_default_lights(cast_shadow=False)
+        server.gui.configure_theme(dark_mode=True, control_width="large")
+        self.scans = ShownScans()
+        self.colouring = Colouring(self, self.scans)
+        self.playback = Playback(self, self.scans, self.colouring)
+        icp_max_distance = float(pipeline_config(self.state.session.config.engine).icp.max_distance)
+        self.graph = GraphOverlay(self, self.scans, icp_max_distance)
+        self.stream = SceneStream(self, self.scans, self.colouring, self.playback.show_focus, self.graph.draw)
+        self.picking = Picking(self, self.scans)
         self.stepper: Stepper | None = None
         self.names = BrowserNames()  # who is behind each browser: the name typed in the page header
-        self.controls = ViewControls(self.server.gui)
         self._wire_controls()
         self.fly_through = FlyThroughPanel(self)  # the "Fly-through" folder
         self.panels = build_panels(self)  # loops, graph edits, octree guess, replay (app/view/panels)
-        self.server.on_client_connect(self._on_connect)
-        self.server.on_client_disconnect(lambda client: self.names.client_left(client.client_id))
-        threading.Thread(target=self.load, name=f"viewer-load-{session_id}", daemon=True).start()
+        server.on_client_connect(self._on_connect)
+        server.on_client_disconnect(lambda client: self.names.client_left(client.client_id))
+        threading.Thread(target=self.stream.load, name=f"viewer-load-{session_id}", daemon=True).start()
 
     def _wire_controls(self) -> None:
         c = self.controls
-        c.colour.on_update(lambda _: self.run_safely(self.recolour))
-        c.point_size.on_update(lambda _: self.set_point_size())
-        c.apply_budget.on_click(lambda _: self.run_safely(self.rebuild_scans))
-        c.show_trajectory.on_update(lambda _: self.draw_graph())
-        c.show_edges.on_update(lambda _: self.draw_graph())
+        c.colour.on_update(lambda _: self.run_safely(self.colouring.recolour))
+        c.point_size.on_update(lambda _: self.stream.set_point_size())
+        c.apply_budget.on_click(lambda _: self.run_safely(self.stream.rebuild_scans))
+        c.show_trajectory.on_update(lambda _: self.graph.draw())
+        c.show_edges.on_update(lambda _: self.graph.draw())
         c.undo_button.on_click(lambda e: self.run_safely(lambda: self.workbench.undo(self.session_id, self.author(e))))
         c.redo_button.on_click(lambda e: self.run_safely(lambda: self.workbench.redo(self.session_id, self.author(e))))
         c.run_button.on_click(lambda e: self.run_safely(lambda: self._start_registration(self.author(e))))
@@ -91,44 +87,27 @@ class SessionViewer(SceneStream, Colouring, Picking, Playback, GraphOverlay):
         c.play_button.on_click(lambda e: self.run_safely(lambda: self._stepper(self.author(e)).play()))
         c.pause_button.on_click(lambda _: self._pause())
 
-    # -------------------------------------------------------------- who acts, and what went wrong
+    # -------------------------------------------------------------- what callers outside the view use
+
+    def set_poses(self, poses: list[Matrix], indices: list[int] | None = None) -> None:
+        """Move scans (all, or those in ``indices``) to ``poses``: what stepping, replay and dragging call."""
+        self.stream.set_poses(poses, indices)
+
+    def begin_playback(self, focus: list[int]) -> None:
+        self.playback.begin(focus)
+
+    def end_playback(self) -> None:
+        self.playback.end()
+
+    # -------------------------------------------------------------- who acts
 
     def _on_connect(self, client: viser.ClientHandle) -> None:
         self.names.client_connected(client.client_id)
-        self.client_seen.set()
+        self.stream.client_seen.set()
 
     def author(self, event: Any) -> str:
         """Who pressed a button: the name the person's page carries (the journal records it)."""
         return self.names.of(getattr(event, "client_id", None))
-
-    def run_safely(self, action: Callable[[], object]) -> None:
-        """GUI callbacks and the panels' background refreshes: an error the user can act on becomes a
-        visible warning, not a dead button; anything else also leaves its traceback in the log. Once the
-        view has stopped nothing runs: its server would drop the updates."""
-        if self.stopped:
-            return
-        try:
-            action()
-        except USER_ERRORS as exc:
-            self.warn(str(exc))
-        except Exception as exc:
-            traceback.print_exc()
-            self.warn(f"{type(exc).__name__}: {exc}")
-
-    def warn(self, message: str) -> None:
-        self.controls.warnings.content = f"**⚠ {message}**" if message else ""
-
-    def update_status(self) -> None:
-        session = self.state.session
-        shown = sum(len(p) for p in self.local)
-        total = 0 if self.detail is None else self.detail.total_points  # without reading any scan in full
-        self.controls.status.content = (
-            f"**{session.name}** · {len(self.local)} scans · {shown:,} of {total:,} points shown · "
-            f"revision {session.revision}"
-        )
-        self.controls.revision_text.content = (
-            f"Revision {session.revision} (undo: {session.journal.can_undo()}, redo: {session.journal.can_redo()})"
-        )
 
     def on_revision(self) -> None:
         """The journal's current revision changed (edit, undo, job): show it."""
@@ -137,11 +116,11 @@ class SessionViewer(SceneStream, Colouring, Picking, Playback, GraphOverlay):
         poses = self.state.session.poses()
         self.set_poses(poses)
         with self.lock:
-            self.shown_revision = self.state.session.revision
+            self.stream.shown_revision = self.state.session.revision
             if self.controls.colour.value != "scan":
-                self.recolour()
-        self.draw_graph()
-        self.update_status()
+                self.colouring.recolour()
+        self.graph.draw()
+        show_status(self, self.scans)
         for panel in self.panels:
             self.run_safely(panel.refresh)
 
@@ -165,7 +144,7 @@ class SessionViewer(SceneStream, Colouring, Picking, Playback, GraphOverlay):
         else:
             # an edit's guardrail (e.g. residuals jumped) stays visible after the job
             self.warn((job.result.get("warning") or "") if job.status == "done" else f"{job.kind} {job.status}")
-        self.update_status()
+        show_status(self, self.scans)
 
     def _pause(self) -> None:
         if self.stepper is not None:
@@ -180,13 +159,13 @@ class SessionViewer(SceneStream, Colouring, Picking, Playback, GraphOverlay):
         return {
             "ready": self.ready.is_set(),
             "error": self.error,
-            "scans": len(self.nodes),
-            "points_shown": int(sum(len(p) for p in self.local)),
-            "points_coarse": self.coarse_points,
+            "scans": len(self.scans.nodes),
+            "points_shown": self.scans.points_shown(),
+            "points_coarse": self.stream.coarse_points,
             "colour": self.controls.colour.value,
-            "revision_shown": self.shown_revision,
-            "pose_updates": self.pose_updates,
-            "detail": None if self.detail is None else self.detail.as_dict(),
+            "revision_shown": self.stream.shown_revision,
+            "pose_updates": self.stream.pose_updates,
+            "detail": None if self.stream.detail is None else self.stream.detail.as_dict(),
             "stepping": None if self.stepper is None else self.stepper.as_dict(),
             "clients": len(self.server.get_clients()),
         }

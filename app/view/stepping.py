@@ -9,9 +9,9 @@ from typing import Any
 
 import numpy as np
 
-from app.errors import PartialResultError
-from app.registration import keep_partial_run, store_run, working_copy
+from app.registration import RunCommit, working_copy
 from app.traces import TraceRecorder
+from app.view import display
 from app.view.panels.host import ViewerHost
 from slam6d.engine_settings import pipeline_config
 from slam6d.errors import Slam6dError
@@ -30,8 +30,6 @@ from slam6d.geometry import Matrix
 from slam6d.icp import correspondences
 from slam6d.pipeline import Pipeline
 
-PAIR_DATA = (255, 120, 0)  # the scan being matched
-PAIR_MODEL = (60, 140, 255)  # the scans it is matched against
 MAX_CORRESPONDENCES = 300  # point pairs drawn per ICP iteration
 
 
@@ -49,6 +47,9 @@ class Stepper:
         self.pipeline = Pipeline(working_copy(viewer.state.sequence()), config)
         self.recorder = TraceRecorder()  # the stepped run is stored for replay too
         self.recorder.attach(self.pipeline)
+        self.run = RunCommit(
+            viewer.workbench, viewer.session_id, author, self.pipeline, self.recorder, {"stepped": True}
+        )
         self.history: list[tuple[int, float, int]] = []
         self.current: int | None = None
         self.model: list[int] = []
@@ -84,19 +85,12 @@ class Stepper:
         try:
             return advance()
         except Slam6dError as exc:
-            kept = keep_partial_run(
-                self.viewer.workbench,
-                self.viewer.session_id,
-                self.author,
-                self.pipeline,
-                self.recorder,
-                {"stepped": True},
-            )
-            if kept is None:
+            partial = self.run.partial_error(exc)
+            if partial is None:
                 raise
             self.finished = True
-            self.viewer.controls.step_status.content = kept["kept"]
-            raise PartialResultError(f"{exc} — {kept['kept']}", kept) from exc
+            self.viewer.controls.step_status.content = str(partial.result["kept"])
+            raise partial from exc
 
     def _show_all(self, events: list[Any]) -> None:
         """Draw under the view's lock: a view stopped meanwhile (its server gone) draws nothing."""
@@ -170,7 +164,7 @@ class Stepper:
             viewer.server.scene.add_line_segments(
                 "/correspondences", np.zeros((1, 2, 3), np.float32), colors=(0, 0, 0), visible=False
             )
-            store_run(viewer.workbench, viewer.session_id, self.author, self.pipeline, self.recorder, {"stepped": True})
+            self.run.store()
             status.content = "registration finished; stored as a new revision"
         elif isinstance(event, LoopsDetected):
             accepted = sum(1 for h in event.hypotheses if h.accepted)
@@ -191,12 +185,8 @@ class Stepper:
 
     def _set_pair(self, current: int | None, model: list[int]) -> None:
         viewer = self.viewer
-        changed = {*viewer.highlight, *([current] if current is not None else []), *model}
         self.current, self.model = current, model
-        viewer.highlight = {} if current is None else {**dict.fromkeys(model, PAIR_MODEL), current: PAIR_DATA}
-        for k in changed:
-            if k is not None and k < len(viewer.nodes):
-                viewer.paint(k)
+        viewer.colouring.set_highlight(display.pair_colours(current, model))
         if self._playing.is_set():
             viewer.begin_playback(self._focus())
 
@@ -206,15 +196,16 @@ class Stepper:
         if not self.model or max_distance <= 0:
             return
         world = [
-            viewer.local[m].astype(np.float64) @ viewer.poses[m][:3, :3].T + viewer.poses[m][:3, 3] for m in self.model
+            viewer.scans.local[m].astype(np.float64) @ viewer.scans.poses[m][:3, :3].T + viewer.scans.poses[m][:3, 3]
+            for m in self.model
         ]
         model = np.concatenate(world)
-        data = viewer.local[index].astype(np.float64)
-        pose = viewer.poses[index]
+        data = viewer.scans.local[index].astype(np.float64)
+        pose = viewer.scans.poses[index]
         data_idx, model_idx = correspondences(model, data, pose, max_distance, limit=MAX_CORRESPONDENCES)
         if len(data_idx) == 0:
             return
-        origin = viewer.poses[0][:3, 3]
+        origin = viewer.scans.poses[0][:3, 3]
         start = data[data_idx] @ pose[:3, :3].T + pose[:3, 3] - origin
         end = model[model_idx] - origin
         viewer.server.scene.add_line_segments(

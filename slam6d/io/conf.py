@@ -64,6 +64,7 @@ def conf_poses(path: Path, files: list[Path]) -> list[Matrix] | None:
 
 
 def read_conf_scan(path: Path) -> CloudData:
+    """Stanford .conf (bmesh FILE t q) listing PLY scans, metres, y up; pose = [R(q)^T | t]"""
     if path.suffix.lower() == ".conf":
         raise FormatError(path, "a .conf file lists scans; read it (or its folder) as a sequence")
     return read_ply(path)
@@ -71,11 +72,9 @@ def read_conf_scan(path: Path) -> CloudData:
 
 CONF_FORMAT = register_format(
     ScanFormat(
-        name="conf",
-        suffixes=(".conf",),
-        convention=Y_UP,
-        read=read_conf_scan,
-        description="Stanford .conf (bmesh FILE t q) listing PLY scans, metres, y up; pose = [R(q)^T | t]",
+        "conf",
+        read_conf_scan,
+        Y_UP,
         discover=discover_conf,
         order_fixed_by=lambda path: f"the index {conf.name}" if (conf := _conf_file(path)) else None,
         sequence_poses=conf_poses,

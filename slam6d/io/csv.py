@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from slam6d.errors import FormatError
-from slam6d.geometry import CANONICAL, Matrix
+from slam6d.geometry import Matrix
 from slam6d.io.order import sort_scan_files
 from slam6d.io.registry import CloudData, ScanFormat, register_format
 from slam6d.io.source import check_regular_file
@@ -95,6 +95,7 @@ def find_list_for(directory: Path, suffix: str) -> list[tuple[Path, Matrix | Non
 
 
 def read_csv_cloud(path: Path) -> CloudData:
+    """comma-separated cloud with x,y,z[,intensity] header (libpointmatcher); list file = order+poses"""
     text = read_text_file(path)
     header_index, first, delimiter = _first_row(text)
     if header_index < 0:
@@ -169,15 +170,17 @@ def listed_poses(suffix: str) -> Callable[[Path, list[Path]], list[Matrix] | Non
     return sequence_poses
 
 
-CSV_FORMAT = register_format(
-    ScanFormat(
-        name="csv",
-        suffixes=(".csv",),
-        convention=CANONICAL,
-        read=read_csv_cloud,
-        description="comma-separated cloud with x,y,z[,intensity] header (libpointmatcher); list file = order+poses",
-        discover=discover_listed(".csv"),
-        order_fixed_by=list_file_ordering(".csv"),
-        sequence_poses=listed_poses(".csv"),
+def listed_format(name: str, read: Callable[[Path], CloudData]) -> ScanFormat:
+    """A format of ``.<name>`` clouds that a list file (libpointmatcher's ``cloudList.csv``) may order and
+    pose: csv and vtk clouds come with the same list files, so they share how a folder is read."""
+    suffix = f".{name}"
+    return ScanFormat(
+        name,
+        read,
+        discover=discover_listed(suffix),
+        order_fixed_by=list_file_ordering(suffix),
+        sequence_poses=listed_poses(suffix),
     )
-)
+
+
+CSV_FORMAT = register_format(listed_format("csv", read_csv_cloud))

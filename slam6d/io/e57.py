@@ -14,7 +14,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from slam6d.errors import FormatError
-from slam6d.geometry import CANONICAL, Matrix, invert, make_pose, rotation_to_quaternion, transform_points
+from slam6d.geometry import Matrix, invert, make_pose, rotation_to_quaternion, transform_points
 from slam6d.io.registry import CloudData, ScanFormat, register_format
 from slam6d.io.source import check_regular_file
 
@@ -39,6 +39,7 @@ def _scan_pose(header) -> Matrix | None:  # type: ignore[no-untyped-def]
 
 
 def read_e57(path: Path) -> CloudData:
+    """ASTM E57 (all scans of a file merged into the first's frame; stored pose used), metres"""
     import pye57
 
     check_regular_file(path)
@@ -93,12 +94,4 @@ def write_e57(
         e57.close()
 
 
-E57_FORMAT = register_format(
-    ScanFormat(
-        name="e57",
-        suffixes=(".e57",),
-        convention=CANONICAL,
-        read=read_e57,
-        description="ASTM E57 (all scans of a file merged into the first's frame; stored pose used), metres",
-    )
-)
+E57_FORMAT = register_format(ScanFormat("e57", read_e57))

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from slam6d.errors import FormatError
-from slam6d.geometry import CANONICAL, Matrix
+from slam6d.geometry import Matrix
 from slam6d.io.order import sort_scan_files
 from slam6d.io.poses import read_kitti_poses
 from slam6d.io.registry import CloudData, ScanFormat, register_format
@@ -31,6 +31,7 @@ class AmbiguousPosesWarning(UserWarning):
 
 
 def read_kitti_bin(path: Path) -> CloudData:
+    """KITTI velodyne .bin: float32 x y z intensity (m, x forward, z up); poses from a *pose*.txt"""
     raw = read_file_bytes(path)
     if len(raw) % RECORD.itemsize:
         raise FormatError(
@@ -99,12 +100,6 @@ def kitti_sequence_poses(directory: Path, files: list[Path]) -> list[Matrix] | N
 
 KITTI_FORMAT = register_format(
     ScanFormat(
-        name="kitti",
-        suffixes=(".bin",),
-        convention=CANONICAL,
-        read=read_kitti_bin,
-        description="KITTI velodyne .bin: float32 x y z intensity (m, x forward, z up); poses from a *pose*.txt",
-        discover=discover_kitti,
-        sequence_poses=kitti_sequence_poses,
+        "kitti", read_kitti_bin, suffixes=(".bin",), discover=discover_kitti, sequence_poses=kitti_sequence_poses
     )
 )

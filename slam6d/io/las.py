@@ -16,7 +16,6 @@ import numpy as np
 from numpy.typing import NDArray
 
 from slam6d.errors import FormatError
-from slam6d.geometry import CANONICAL
 from slam6d.io.registry import CloudData, ScanFormat, register_format
 from slam6d.io.source import check_regular_file
 
@@ -116,6 +115,7 @@ def _check_laz_chunk_table(path: Path, stream: BinaryIO, point_offset: int, file
 
 
 def read_las(path: Path) -> CloudData:
+    """ASPRS LAS/LAZ, scaled coordinates (m, z up) + intensity"""
     import laspy
 
     size = check_regular_file(path)
@@ -169,12 +169,4 @@ def write_las(
     las.write(str(path))
 
 
-LAS_FORMAT = register_format(
-    ScanFormat(
-        name="las",
-        suffixes=(".las", ".laz"),
-        convention=CANONICAL,
-        read=read_las,
-        description="ASPRS LAS/LAZ, scaled coordinates (m, z up) + intensity",
-    )
-)
+LAS_FORMAT = register_format(ScanFormat("las", read_las, suffixes=(".las", ".laz")))

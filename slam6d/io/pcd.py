@@ -16,7 +16,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from slam6d.errors import FormatError
-from slam6d.geometry import CANONICAL, Matrix, make_pose, quaternion_to_rotation, rotation_to_quaternion
+from slam6d.geometry import Matrix, make_pose, quaternion_to_rotation, rotation_to_quaternion
 from slam6d.io.registry import CloudData, ScanFormat, register_format
 from slam6d.io.source import read_file_bytes
 from slam6d.io.text import parse_numeric_rows
@@ -177,6 +177,7 @@ def _viewpoint_pose(viewpoint: NDArray[np.float64]) -> Matrix | None:
 
 
 def read_pcd(path: Path) -> CloudData:
+    """PCL .pcd (ascii, binary, binary_compressed) x y z [intensity], metres; VIEWPOINT = pose"""
     raw = read_file_bytes(path)
     header = parse_pcd_header(path, raw)
     records = _records(path, raw, header)
@@ -219,12 +220,4 @@ def write_pcd(
             np.savetxt(fh, np.column_stack([records[f] for f in fields]), fmt="%.9g")
 
 
-PCD_FORMAT = register_format(
-    ScanFormat(
-        name="pcd",
-        suffixes=(".pcd",),
-        convention=CANONICAL,
-        read=read_pcd,
-        description="PCL .pcd (ascii, binary, binary_compressed) x y z [intensity], metres; VIEWPOINT = pose",
-    )
-)
+PCD_FORMAT = register_format(ScanFormat("pcd", read_pcd))

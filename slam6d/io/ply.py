@@ -16,7 +16,6 @@ import numpy as np
 from numpy.typing import NDArray
 
 from slam6d.errors import FormatError
-from slam6d.geometry import CANONICAL
 from slam6d.io.registry import CloudData, ScanFormat, register_format
 from slam6d.io.source import read_file_bytes
 from slam6d.io.text import parse_numeric_rows
@@ -180,6 +179,7 @@ def _read_binary(path: Path, raw: bytes, header: PlyHeader, index: int, vertex: 
 
 
 def read_ply(path: Path) -> CloudData:
+    """PLY (ASCII or binary) vertices x y z [intensity], metres, z up"""
     raw = read_file_bytes(path)
     header = parse_ply_header(path, raw)
     index, vertex = _vertex_element(path, header)
@@ -234,12 +234,4 @@ def write_ply(
                 np.savetxt(fh, np.column_stack([records[n].astype(np.float64) for n, _ in fields]), fmt=formats)
 
 
-PLY_FORMAT = register_format(
-    ScanFormat(
-        name="ply",
-        suffixes=(".ply",),
-        convention=CANONICAL,
-        read=read_ply,
-        description="PLY (ASCII or binary) vertices x y z [intensity], metres, z up",
-    )
-)
+PLY_FORMAT = register_format(ScanFormat("ply", read_ply))

@@ -8,6 +8,7 @@ empty scans, converting to the canonical frame - happens here once.
 
 from __future__ import annotations
 
+import inspect
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -17,7 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from slam6d.errors import EmptyScanError, FormatError, InvalidValueError
-from slam6d.geometry import FrameConvention, Matrix, check_rigid
+from slam6d.geometry import CANONICAL, FrameConvention, Matrix, check_rigid
 from slam6d.io.order import DEFAULT_ORDER, check_order, sort_scan_files
 from slam6d.scan import Scan, ScanSequence
 
@@ -33,11 +34,16 @@ class CloudData:
 
 @dataclass(frozen=True)
 class ScanFormat:
+    """A registered format. Each registration states only what differs from the common case: a file
+    suffix that is the format's name (``.ply``), canonical metres with z up, a description that is the
+    first paragraph of the reader's docstring (so the text ``slam6d formats`` prints is kept where the
+    reader is written), and a plain folder listing."""
+
     name: str
-    suffixes: tuple[str, ...]
-    convention: FrameConvention
     read: Callable[[Path], CloudData]
-    description: str = ""
+    convention: FrameConvention = CANONICAL
+    suffixes: tuple[str, ...] = ()  # () means ``(".<name>",)``
+    description: str = ""  # "" means the first paragraph of ``read``'s docstring
     # Lists the scan files of a directory in acquisition order; default: every file with a suffix, in
     # natural order (slam6d.io.order).
     discover: Callable[[Path], list[Path]] | None = None
@@ -49,6 +55,17 @@ class ScanFormat:
     # What fixes the order of a directory's scans when it is not a plain folder listing (an index file,
     # a numbering scheme), or None; ``--order`` other than natural is refused then (see slam6d.io.order).
     order_fixed_by: Callable[[Path], str | None] | None = None
+
+    def __post_init__(self) -> None:
+        if not self.suffixes:
+            object.__setattr__(self, "suffixes", (f".{self.name}",))
+        if not self.description:
+            object.__setattr__(self, "description", _first_paragraph(self.read))
+
+
+def _first_paragraph(function: Callable[..., object]) -> str:
+    doc = inspect.getdoc(function) or ""
+    return " ".join(doc.split("\n\n", 1)[0].split())
 
 
 class NonFinitePointsWarning(UserWarning):

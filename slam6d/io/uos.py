@@ -53,6 +53,7 @@ def write_pose_file(path: Path, native_pose: Matrix) -> None:
 
 
 def read_uos_scan(path: Path) -> CloudData:
+    """3DTK uos: scanNNN.3d + scanNNN.pose (cm, degrees, left-handed, y up)"""
     columns = (3, 4, 6, 7)
     data = read_file_bytes(path)
     rows = parse_numeric_bytes(data, columns)
@@ -108,11 +109,10 @@ def discover_uos(directory: Path) -> list[Path]:
 
 UOS_FORMAT = register_format(
     ScanFormat(
-        name="uos",
+        "uos",
+        read_uos_scan,
+        UOS,
         suffixes=(".3d",),
-        convention=UOS,
-        read=read_uos_scan,
-        description="3DTK uos: scanNNN.3d + scanNNN.pose (cm, degrees, left-handed, y up)",
         discover=discover_uos,
         order_fixed_by=lambda _directory: "3DTK's scanNNN numbering",
     )

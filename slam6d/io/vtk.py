@@ -15,9 +15,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from slam6d.errors import FormatError
-from slam6d.geometry import CANONICAL
-from slam6d.io.csv import discover_listed, list_file_ordering, listed_poses
-from slam6d.io.registry import CloudData, ScanFormat, register_format
+from slam6d.io.csv import listed_format
+from slam6d.io.registry import CloudData, register_format
 from slam6d.io.source import read_file_bytes
 
 _TYPES = {"float": "f4", "double": "f8", "int": "i4", "unsigned_int": "u4", "short": "i2", "long": "i8"}
@@ -87,6 +86,7 @@ def _ascii_points(path: Path, text: str, count: int, first_line: int) -> NDArray
 
 
 def read_vtk(path: Path) -> CloudData:
+    """legacy VTK (ASCII or BINARY) POINTS, metres; cloudList.csv gives order and gT poses"""
     raw = read_file_bytes(path)
     encoding, count, dtype, offset, line_no = _points_header(path, raw)
     if encoding == "BINARY":
@@ -121,15 +121,4 @@ def write_vtk(path: Path | str, points: NDArray[np.float64], binary: bool = Fals
             np.savetxt(fh, cells, fmt="%d")
 
 
-VTK_FORMAT = register_format(
-    ScanFormat(
-        name="vtk",
-        suffixes=(".vtk",),
-        convention=CANONICAL,
-        read=read_vtk,
-        description="legacy VTK (ASCII or BINARY) POINTS, metres; cloudList.csv gives order and gT poses",
-        discover=discover_listed(".vtk"),
-        order_fixed_by=list_file_ordering(".vtk"),
-        sequence_poses=listed_poses(".vtk"),
-    )
-)
+VTK_FORMAT = register_format(listed_format("vtk", read_vtk))

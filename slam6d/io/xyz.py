@@ -12,7 +12,6 @@ from pathlib import Path
 
 import numpy as np
 
-from slam6d.geometry import CANONICAL
 from slam6d.io.registry import CloudData, ScanFormat, register_format
 from slam6d.io.text import parse_numeric_rows, read_text_file
 
@@ -28,6 +27,7 @@ def _first_data_line(lines: list[str]) -> int | None:
 
 
 def read_xyz(path: Path) -> CloudData:
+    """text x y z [intensity ...] per line, space or comma separated, metres"""
     text = read_text_file(path, "'x y z' per line")
     lines = text.splitlines()
     first = _first_data_line(lines)
@@ -57,12 +57,4 @@ def write_xyz(path: Path | str, points: np.ndarray, intensity: np.ndarray | None
     np.savetxt(Path(path), np.hstack(columns), fmt="%.9g")
 
 
-XYZ_FORMAT = register_format(
-    ScanFormat(
-        name="xyz",
-        suffixes=(".xyz", ".txt", ".pts", ".asc"),
-        convention=CANONICAL,
-        read=read_xyz,
-        description="text x y z [intensity ...] per line, space or comma separated, metres",
-    )
-)
+XYZ_FORMAT = register_format(ScanFormat("xyz", read_xyz, suffixes=(".xyz", ".txt", ".pts", ".asc")))

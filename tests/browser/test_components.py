@@ -38,7 +38,7 @@ def test_bridge_two_components_by_hand_and_relax(corridor_sessions, live_server,
     wait_until(lambda: viewer.controls.colour.value == "component", 10, "the view did not colour by component")
 
     def colours() -> list[tuple[int, ...]]:
-        return [tuple(int(c) for c in viewer.scan_colours(k)) for k in range(6)]
+        return [tuple(int(c) for c in viewer.colouring.scan_colours(k)) for k in range(6)]
 
     # one colour per piece
     wait_until(lambda: len(set(colours())) == 2, 10, f"not two colours: {colours()}")
@@ -58,7 +58,7 @@ def test_bridge_two_components_by_hand_and_relax(corridor_sessions, live_server,
     frame.get_by_text("all 6 scans form one connected component for graph relaxation").wait_for(timeout=20_000)
     # one colour for every scan but the two picked ones (drawn in the pick colours over it)
     wait_until(lambda: len({colours()[k] for k in (1, 2, 4, 5)}) == 1, 10, f"still split: {colours()}")
-    assert set(viewer.component_of.values()) == {0}
+    assert set(viewer.colouring.component_of.values()) == {0}
 
     # relax again: graph relaxation now runs to the end
     frame.get_by_role("button", name="Relax", exact=True).click()

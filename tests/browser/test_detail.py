@@ -35,7 +35,7 @@ def test_first_view_arrives_and_zooming_in_raises_the_level_of_the_scan_in_front
     open_session(page, server, "campus", timeout=240_000)  # the first open orders the levels once
     assert wait_for_map(page) >= 0.005
     viewer = server.app.state.viewers.get("campus")
-    detail = viewer.detail
+    detail = viewer.stream.detail
     total = detail.total_points
     before = list(detail.shown)
     assert total > 3 * BUDGET and detail.points_shown(before) <= BUDGET
@@ -55,10 +55,10 @@ def test_first_view_arrives_and_zooming_in_raises_the_level_of_the_scan_in_front
         time.sleep(0.2)
     time.sleep(1.0)  # a last debounced pass after the final wheel step
     after = list(detail.shown)
-    positions = np.array([p[:3, 3] for p in viewer.poses])
+    positions = np.array([p[:3, 3] for p in viewer.scans.poses])
     nearest = int(np.argmin(np.linalg.norm(positions - detail.camera, axis=1)))
     assert after[nearest] > before[nearest], (nearest, before[nearest], after[nearest])
     assert detail.points_shown(after) <= BUDGET
-    assert [len(p) for p in viewer.local] == [detail.levels.level_points[k][lv] for k, lv in enumerate(after)]
+    assert [len(p) for p in viewer.scans.local] == [detail.levels.level_points[k][lv] for k, lv in enumerate(after)]
     viewer_frame(page).get_by_text("points shown").wait_for()
     page.screenshot(path=str(artifacts_dir / "detail_zoomed_in.png"))

@@ -23,10 +23,10 @@ def test_click_a_scan_in_the_view_selects_it_in_the_edit_panel(
     viewer = server.app.state.viewers.get("corridor")
     edit = next(p for p in viewer.panels if isinstance(p, EdgesPanel))
     # The corridor scans overlap; lift scan 3 by 30 m so that it alone is under the view's centre.
-    poses = [p.copy() for p in viewer.poses]
+    poses = [p.copy() for p in viewer.scans.poses]
     poses[3][2, 3] += 30.0
     viewer.set_poses(poses)
-    target = viewer.local[3].astype(np.float64).mean(axis=0) @ poses[3][:3, :3].T + poses[3][:3, 3]
+    target = viewer.scans.local[3].astype(np.float64).mean(axis=0) @ poses[3][:3, :3].T + poses[3][:3, 3]
     wait_until(lambda: len(viewer.server.get_clients()) == 1, 10, "the 3D view did not connect")
     client = next(iter(viewer.server.get_clients().values()))
     client.camera.position = target + np.array([-25.0, -25.0, 15.0])  # (moving it carries the look-at along)
@@ -39,7 +39,7 @@ def test_click_a_scan_in_the_view_selects_it_in_the_edit_panel(
     assert box is not None
     canvas.click(position={"x": box["width"] / 2, "y": box["height"] / 2})
     wait_until(lambda: int(edit.scan_a.value) == 3, 10, "the click did not pick scan 3")
-    assert viewer.selected.get(3) is not None  # drawn highlighted
+    assert viewer.colouring.selected.get(3) is not None  # drawn highlighted
 
     open_folder(frame, "Edit graph")
     picked = frame.get_by_text("as A", exact=False).filter(has_text="Picked scan 3")

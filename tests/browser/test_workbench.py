@@ -74,8 +74,8 @@ def test_second_browser_sees_the_first_ones_edit(corridor_sessions, live_server,
     viewer_frame(second).get_by_text("revision 0", exact=False).first.wait_for(timeout=10_000)
     second.screenshot(path=str(artifacts_dir / "workbench_second_browser.png"))
     viewer = server.app.state.viewers.get("corridor")
-    assert viewer.poses[3][2, 3] == pytest.approx(workbench.current_poses("corridor")[3][2, 3])
-    assert np.allclose(viewer.poses[3], workbench.current_poses("corridor")[3])
+    assert viewer.scans.poses[3][2, 3] == pytest.approx(workbench.current_poses("corridor")[3][2, 3])
+    assert np.allclose(viewer.scans.poses[3], workbench.current_poses("corridor")[3])
     undo = workbench.state("corridor").session.journal.entries()[-1]
     assert (undo.kind, undo.author) == ("undo", "bob")
     # Ctrl+Shift+Z in the second browser redoes it, for both
@@ -90,7 +90,7 @@ def test_step_one_icp_iteration(corridor_sessions, live_server, new_browser, art
     open_session(page, server, "corridor")
     frame = viewer_frame(page)
     viewer = server.app.state.viewers.get("corridor")
-    before = viewer.pose_updates
+    before = viewer.stream.pose_updates
     for _ in range(5):  # the first step starts a scan (and may search an initial guess); then ICP iterates
         events = 0 if viewer.stepper is None else viewer.stepper.events
         frame.get_by_role("button", name="Step ICP iteration").click()
@@ -104,7 +104,7 @@ def test_step_one_icp_iteration(corridor_sessions, live_server, new_browser, art
     page.screenshot(path=str(artifacts_dir / "workbench_icp_step.png"))
     state = viewer.stepper.as_dict()
     assert state["iterations"] == 1 and state["current"] is not None and state["model"]
-    assert viewer.pose_updates > before
+    assert viewer.stream.pose_updates > before
     assert server.workbench.state("corridor").session.revision == 0  # nothing is stored mid-run
 
 

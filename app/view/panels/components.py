@@ -47,7 +47,7 @@ class ComponentsPanel:
             or last_failure(viewer.state.session, viewer.state.session.revision) is not None
         )
         if method != "graph" and not wanted:
-            viewer.component_of = {}
+            viewer.colouring.component_of = {}
             self.count = None
             self.message.content = (
                 f"Choose *Colour by* `component` to see the connected components {method} relaxation would find."
@@ -55,7 +55,7 @@ class ComponentsPanel:
             return
         found = session_components(self.editor.context, session_id, method)
         with viewer.lock:
-            viewer.component_of = {k: n for n, group in enumerate(found["components"]) for k in group}
+            viewer.colouring.component_of = {k: n for n, group in enumerate(found["components"]) for k in group}
         count = int(found["count"])
         became_split = count > 1 and (self.count is None or self.count <= 1)
         self.count = count
@@ -67,6 +67,6 @@ class ComponentsPanel:
             finally:
                 self.switching = False
         elif colour.value == "component":
-            viewer.recolour()
+            viewer.colouring.recolour()
         # last: once the message shows, the colours it speaks of are drawn
         self.message.content = f"**⚠ {found['message']}**" if count > 1 else found["message"]

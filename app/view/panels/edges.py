@@ -7,11 +7,11 @@ from typing import Any
 import numpy as np
 
 from app.editing import editor_for
+from app.view.controls import NO_CHOICE
 from app.view.panels.host import ViewerHost
 from app.view.panels.paging import Pager
 from slam6d.geometry import make_pose, quaternion_to_rotation, rotation_to_quaternion
 
-_NONE = "—"
 PICKED_A = (255, 255, 255)
 PICKED_B = (255, 60, 200)
 
@@ -31,7 +31,7 @@ class EdgesPanel:
             self.scan_b = gui.add_number("Scan B", 1, min=0, step=1)
             self.force = gui.add_checkbox("Keep edge even if ICP disagrees", False)
             self.add = gui.add_button("Add edge A–B (ICP)")
-            self.edge = gui.add_dropdown("Edge", [_NONE])
+            self.edge = gui.add_dropdown("Edge", [NO_CHOICE])
             self.edge_pages = Pager(gui, "Edges page", lambda: viewer.run_safely(self.refresh))
             self.delete = gui.add_button("Delete edge")
             self.drag = gui.add_checkbox("Drag scan A (gizmo)", False)
@@ -51,7 +51,7 @@ class EdgesPanel:
         self.icp_here.on_click(lambda e: run(lambda: self._move(e, refine=True)))
 
     def _clicked(self, event: Any) -> None:
-        k = self.viewer.pick(event.ray_origin, event.ray_direction)
+        k = self.viewer.picking.pick(event.ray_origin, event.ray_direction)
         if k is None:
             self.pick_status.content = f"No scan under the cursor; the next click still picks scan {self.next_pick}."
             return
@@ -79,7 +79,7 @@ class EdgesPanel:
         selected = {int(self.scan_b.value): PICKED_B} if "B" in self.chosen else {}
         if "A" in self.chosen:
             selected[int(self.scan_a.value)] = PICKED_A  # A wins when both name one scan
-        self.viewer.select(selected)
+        self.viewer.colouring.select(selected)
 
     def _add(self, event: Any) -> None:
         i, j = int(self.scan_a.value), int(self.scan_b.value)
@@ -92,7 +92,7 @@ class EdgesPanel:
         self.viewer.warn(out["warning"] or "")
 
     def _delete(self, event: Any) -> None:
-        if self.edge.value == _NONE:
+        if self.edge.value == NO_CHOICE:
             raise ValueError("choose an edge first")
         k = int(self.edge.value.split(":")[0])
         out = self.editor.edges.delete(self.session_id, k, self.viewer.author(event))
@@ -110,7 +110,7 @@ class EdgesPanel:
             viewer.set_poses(viewer.state.session.poses())  # an unkept drag is dropped
             return
         k = int(self.scan_a.value)
-        pose = viewer.poses[k]
+        pose = viewer.scans.poses[k]
         self.gizmo = viewer.server.scene.add_transform_controls(
             "/edit/gizmo", scale=2.0, position=pose[:3, 3], wxyz=rotation_to_quaternion(pose[:3, :3])
         )
@@ -130,8 +130,8 @@ class EdgesPanel:
         """The other scans of scan k's connected component when *Carry A's component along* is on."""
         if not self.carry.value:
             return []
-        piece = self.viewer.component_of.get(k)
-        return sorted(s for s, c in self.viewer.component_of.items() if c == piece and s != k)
+        piece = self.viewer.colouring.component_of.get(k)
+        return sorted(s for s, c in self.viewer.colouring.component_of.items() if c == piece and s != k)
 
     def _gizmo_pose(self) -> np.ndarray:
         return make_pose(quaternion_to_rotation(np.asarray(self.gizmo.wxyz)), np.asarray(self.gizmo.position))
@@ -154,7 +154,7 @@ class EdgesPanel:
 
     def refresh(self) -> None:
         edges, _ = self.edge_pages.page(self.editor.edges.listed(self.session_id), "edges")
-        options = [f"{e['k']}: {e['i']}–{e['j']} {e['kind']}" for e in edges] or [_NONE]
+        options = [f"{e['k']}: {e['i']}–{e['j']} {e['kind']}" for e in edges] or [NO_CHOICE]
         previous = self.edge.value
         self.edge.options = options
         self.edge.value = previous if previous in options else options[0]  # type: ignore[misc]

@@ -165,7 +165,7 @@ class FlyThroughPanel:
     def _preview_path(self, keyframes: list[Keyframe]) -> CameraPath | None:
         if keyframes:
             return CameraPath(keyframes)
-        poses = list(self.viewer.poses)
+        poses = list(self.viewer.scans.poses)
         return trajectory_path(poses) if poses else None
 
     def _draw_preview(self, keyframes: list[Keyframe], path: CameraPath | None) -> None:

@@ -8,13 +8,11 @@ import numpy as np
 
 from app.editing import editor_for
 from app.view import display
+from app.view.controls import NO_CHOICE
 from app.view.panels.host import ViewerHost
 from slam6d.geometry import rotation_to_quaternion
 
-_NONE = "—"
 _TOP = 10
-_MODEL_CUBES = (60, 140, 255)
-_DATA_CUBES = (255, 120, 0)
 
 
 class GuessPanel:
@@ -30,7 +28,7 @@ class GuessPanel:
             self.level = gui.add_slider("Search level (0 = coarsest)", 0, 3, 1, 3)
             self.search = gui.add_button("Search candidates")
             self.table = gui.add_markdown("")
-            self.choice = gui.add_dropdown("Candidate", [_NONE])
+            self.choice = gui.add_dropdown("Candidate", [NO_CHOICE])
             self.apply = gui.add_button("Run ICP from candidate", disabled=True)
             self.show = gui.add_checkbox("Show cubes and candidates", True)
         run = viewer.run_safely
@@ -73,7 +71,10 @@ class GuessPanel:
         size = float(summary["cube_size"])
         poses = viewer.state.session.poses()
         add = viewer.server.scene
-        for name, scan, colour in (("model", summary["model"], _MODEL_CUBES), ("data", summary["data"], _DATA_CUBES)):
+        for name, scan, colour in (
+            ("model", summary["model"], display.MODEL_SCANS),
+            ("data", summary["data"], display.DATA_SCAN),
+        ):
             centres = self.editor.guesses.occupied_cubes(self.session_id, scan, size).astype(np.float32)
             pose = poses[scan]
             self.drawn.append(
@@ -110,7 +111,7 @@ class GuessPanel:
             handle.visible = visible
 
     def _apply(self, event: Any) -> None:
-        if self.summary is None or self.choice.value == _NONE:
+        if self.summary is None or self.choice.value == NO_CHOICE:
             raise ValueError("search and choose a candidate first")
         rank = int(self.choice.value.split(":")[0])
         s = self.summary
@@ -126,7 +127,7 @@ class GuessPanel:
         if self.summary is not None:  # the poses changed: the shown search is stale
             self.summary = None
             self.apply.disabled = True
-            self.choice.options = [_NONE]
+            self.choice.options = [NO_CHOICE]
             self.table.content = "The poses changed; search again."
             for handle in self.drawn:
                 handle.remove()

@@ -8,12 +8,11 @@ import numpy as np
 
 from app.editing import editor_for
 from app.view import display
+from app.view.controls import NO_CHOICE
 from app.view.panels.host import ViewerHost
 from app.view.panels.paging import Pager
 from slam6d.relaxation_methods import RELAXATION_METHODS
 from slam6d.residuals import displacements
-
-_NONE = "—"
 
 
 class LoopsPanel:
@@ -26,7 +25,7 @@ class LoopsPanel:
             self.detect = gui.add_button("Detect loops")
             self.table = gui.add_markdown("No loop hypotheses yet.")
             self.pages = Pager(gui, "Hypotheses page", lambda: viewer.run_safely(self.refresh))
-            self.choice = gui.add_dropdown("Hypothesis", [_NONE])
+            self.choice = gui.add_dropdown("Hypothesis", [NO_CHOICE])
             self.accept = gui.add_button("Accept loop")
             self.reject = gui.add_button("Reject loop")
             self.close = gui.add_button("Close loops (error diffusion)")
@@ -56,7 +55,7 @@ class LoopsPanel:
         self._submit("relax", self.editor.relaxation.relax_job, event, method=self.method.value, fixed=[0])
 
     def _decide(self, accept: bool, event: Any) -> None:
-        if self.choice.value == _NONE:
+        if self.choice.value == NO_CHOICE:
             raise ValueError("choose a loop hypothesis first")
         k = int(self.choice.value.split(":")[0])
         self.editor.loops.decide(self.session_id, k, accept, self.viewer.author(event))
@@ -65,7 +64,7 @@ class LoopsPanel:
         listed = self.editor.loops.listed(self.session_id)
         if not listed:
             self.table.content = "No loop hypotheses yet: run registration or *Detect loops*."
-            self.choice.options = [_NONE]
+            self.choice.options = [NO_CHOICE]
         else:
             listed, caption = self.pages.page(listed, "hypotheses")
             rows = [
@@ -94,17 +93,17 @@ class LoopsPanel:
     def _show_before(self) -> None:
         before, after = self._revisions()
         self.viewer.set_poses(before if self.before.value else after)
-        self.viewer.draw_graph()
+        self.viewer.graph.draw()
 
     def _colour(self) -> None:
         viewer = self.viewer
         if not self.by_displacement.value:
-            viewer.highlight = {}
+            viewer.colouring.highlight = {}
             self.legend.content = ""
         else:
             moved = np.array(displacements(*self._revisions()))
             top = float(moved.max()) if len(moved) and moved.max() > 0 else 1.0
             colours = display.ramp(moved, 0.0, top)
-            viewer.highlight = {k: display.rgb(colours[k]) for k in range(len(moved))}
+            viewer.colouring.highlight = {k: display.rgb(colours[k]) for k in range(len(moved))}
             self.legend.content = f"Displacement since the parent revision: blue 0 m → red {top:.2f} m"
-        viewer.recolour()
+        viewer.colouring.recolour()

@@ -8,11 +8,9 @@ import time
 import numpy as np
 
 from app import traces
+from app.view import display
+from app.view.controls import NO_CHOICE
 from app.view.panels.host import ViewerHost
-
-_NONE = "—"
-_DATA = (255, 120, 0)
-_MODEL = (60, 140, 255)
 
 
 class ReplayPanel:
@@ -25,7 +23,7 @@ class ReplayPanel:
         self._lock = threading.Lock()
         gui = viewer.server.gui
         with gui.add_folder("Replay a run", expand_by_default=False):
-            self.trace = gui.add_dropdown("Trace", [_NONE])
+            self.trace = gui.add_dropdown("Trace", [NO_CHOICE])
             self.load = gui.add_button("Load trace")
             self.step = gui.add_button("Next event", disabled=True)
             self.play = gui.add_button("Play replay", disabled=True)
@@ -40,13 +38,13 @@ class ReplayPanel:
         self.stop.on_click(lambda _: run(self._stop))
 
     def refresh(self) -> None:
-        names = [t["name"] for t in traces.list_traces(self.session)] or [_NONE]
+        names = [t["name"] for t in traces.list_traces(self.session)] or [NO_CHOICE]
         previous = self.trace.value
         self.trace.options = names
         self.trace.value = previous if previous in names else names[-1]  # type: ignore[misc]
 
     def _load(self) -> None:
-        if self.trace.value == _NONE:
+        if self.trace.value == NO_CHOICE:
             raise ValueError("no stored run yet: run a registration first")
         trace = traces.load_trace(self.session, self.trace.value)
         with self._lock:
@@ -67,13 +65,7 @@ class ReplayPanel:
         viewer = self.viewer
         for k, pose in frame.moved.items():
             viewer.set_poses([pose] * (k + 1), [k])
-        changed = set(viewer.highlight)
-        viewer.highlight = {} if frame.current is None else {**dict.fromkeys(frame.model, _MODEL), frame.current: _DATA}
-        for k in changed | set(viewer.highlight):
-            if k < len(viewer.nodes):
-                viewer.nodes[k].colors = np.broadcast_to(
-                    np.array(viewer.scan_colours(k), np.uint8), (len(viewer.local[k]), 3)
-                )
+        viewer.colouring.set_highlight(display.pair_colours(frame.current, frame.model))
         if frame.rms_history:
             viewer.controls.show_icp_history(frame.rms_history)
         self.status.content = f"event {frame.event + 1}/{len(self.frames)}: {frame.text}"
@@ -97,7 +89,7 @@ class ReplayPanel:
 
     def _stop(self) -> None:
         self._playing.clear()
-        self.viewer.highlight = {}
+        self.viewer.colouring.highlight = {}
         self.viewer.on_revision()
-        self.viewer.recolour()
+        self.viewer.colouring.recolour()
         self.status.content = "showing the current revision"
