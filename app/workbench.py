@@ -15,17 +15,16 @@ import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from functools import partial
-from pathlib import Path, PurePosixPath
+from pathlib import Path
 from typing import Any, BinaryIO
 
 import numpy as np
 
 from app.data_root import DataRoot
-from app.errors import EditError, ParseTimeoutError, UnknownSessionError, UploadError
+from app.errors import EditError, ParseTimeoutError, UnknownSessionError
 from app.jobs import Job, JobManager
-from app.parse_worker import parse_session_scans
 from app.resources import Loaded, ResourceLimits, SessionMemory, array_bytes
-from slam6d.archive import ArchiveLimits, extract_zip
+from app.upload import UploadLimits, check_parses, session_from_upload
 from slam6d.errors import SessionError, Slam6dError
 from slam6d.geometry import Matrix
 from slam6d.journal import Change, Revision, StaleRevisionError
@@ -36,7 +35,6 @@ from slam6d.session import SESSION_FILE, Session, reserve_session_folder
 
 log = logging.getLogger("slam6d.workbench")
 _ID = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,99}$")
-_UPLOAD_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,199}$")
 
 
 @dataclass
@@ -326,59 +324,15 @@ class Workbench:
         format_name: str | None = None,
         frame: str | None = None,
     ) -> Session:
-        """Store uploaded scan files (or .zips of them) in a new session and prove they all parse.
-
-        Files are copied from their (spooled) streams in chunks and zips unpacked by
-        :func:`slam6d.archive.extract_zip` (sizes, ratio, names, links, nested archives checked while
-        streaming); the whole upload shares one size budget. Called off the event loop; the scans are
-        parsed in a child process under the parse time limit (:mod:`app.parse_worker`). On any
-        problem the half-made folder is removed: a refused upload leaves nothing behind.
-        """
-        folder = reserve_session_folder(self.sessions_dir, name)
-        scans = folder / "scans"
-        try:
-            scans.mkdir()
-            budget = self.max_upload_bytes
-            for filename, stream in files:
-                base = PurePosixPath(filename.replace("\\", "/")).name
-                if base.lower().endswith(".zip"):
-                    budget -= self._unzip_upload(base, stream, folder, scans, budget)
-                else:
-                    budget -= _copy_upload(_upload_name(base, filename), stream, scans, budget, self.max_upload_bytes)
-            if not any(scans.iterdir()):
-                raise UploadError("the upload contains no files")
-            Session.create(folder, name, "scans", format_name, frame)
-            # parses every scan (a bad file is reported now, with its name and line) under the time limit
-            parse_session_scans(folder, self.limits.parse_timeout_s, f"upload '{name}'")
-        except BaseException:
-            shutil.rmtree(folder, ignore_errors=True)
-            raise
-        return Session.open(folder)
+        """A new session of uploaded scan files (or .zips of them), every scan proven to parse
+        (:func:`app.upload.session_from_upload`); a refused upload leaves nothing behind."""
+        limits = UploadLimits(self.max_upload_bytes, self.limits.parse_timeout_s)
+        return session_from_upload(self.sessions_dir, name, files, limits, format_name, frame)
 
     def check_imported(self, session: Session, label: str) -> Session:
         """Parse an imported session's scans as an upload's are (same time limit); on any problem the
         session folder is removed, so a refused import leaves nothing behind."""
-        try:
-            parse_session_scans(session.folder, self.limits.parse_timeout_s, label)
-        except BaseException:
-            shutil.rmtree(session.folder, ignore_errors=True)
-            raise
-        return Session.open(session.folder)
-
-    def _unzip_upload(self, base: str, stream: BinaryIO, folder: Path, scans: Path, budget: int) -> int:
-        """Unpack one uploaded zip into ``scans`` (folders flattened); the bytes it took from ``budget``."""
-        staging = folder / f".unzip-{len(list(folder.iterdir()))}"
-        limits = ArchiveLimits(max_total_bytes=max(budget, 0))
-        written = extract_zip(stream, staging, limits, rename=_flatten, label=base)
-        used = 0
-        for member in written:
-            target = scans / member.name
-            if target.exists():
-                raise UploadError(f"file '{member.name}' appears twice in the upload")
-            used += (staging / member).stat().st_size
-            (staging / member).replace(target)
-        shutil.rmtree(staging, ignore_errors=True)
-        return used
+        return check_parses(session, self.limits.parse_timeout_s, label)
 
     # -------------------------------------------------------------- edits
 
@@ -436,37 +390,6 @@ class Workbench:
 
     def current_poses(self, session_id: str) -> list[Matrix]:
         return [np.asarray(p) for p in self.state(session_id).session.poses()]
-
-
-def _upload_name(base: str, filename: str) -> str:
-    if not _UPLOAD_NAME.match(base):
-        raise UploadError(
-            "file name not allowed: an uploaded file name may hold letters, digits, '.', '_' and '-' only"
-        )
-    return base
-
-
-def _flatten(member: PurePosixPath) -> PurePosixPath | None:
-    """Where a zip entry of an upload goes: its base name (folders flattened); hidden files and macOS
-    resource forks skipped."""
-    if member.name.startswith(".") or "__MACOSX" in member.parts:
-        return None
-    return PurePosixPath(_upload_name(member.name, str(member)))
-
-
-def _copy_upload(name: str, stream: BinaryIO, scans: Path, budget: int, limit: int) -> int:
-    """Copy one uploaded file into ``scans`` in chunks, refusing (413) once ``budget`` is spent."""
-    target = scans / name
-    if target.exists():
-        raise UploadError(f"file '{name}' appears twice in the upload")
-    copied = 0
-    with open(target, "xb") as sink:
-        while chunk := stream.read(1 << 20):
-            copied += len(chunk)
-            if copied > budget:
-                raise UploadError(f"upload exceeds the limit of {limit // 2**20} MiB", 413)
-            sink.write(chunk)
-    return copied
 
 
 __all__ = ["SessionState", "Workbench"]
