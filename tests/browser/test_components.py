@@ -10,7 +10,7 @@ from app.editing import editor_for
 from app.view.panels.edges import EdgesPanel
 from tests.browser.conftest import viewer_frame
 from tests.browser.test_editing import open_folder, wait_until
-from tests.browser.test_render_panel import input_of
+from tests.browser.test_render_panel import choose_option, input_of
 from tests.browser.test_workbench import open_session
 
 pytestmark = pytest.mark.browser
@@ -31,8 +31,7 @@ def test_bridge_two_components_by_hand_and_relax(corridor_sessions, live_server,
 
     # the components of the graph the chosen relaxation uses: graph relaxation over the session's edges
     open_folder(frame, "Loops & relaxation")
-    input_of(frame, "Relaxation").click()
-    frame.get_by_role("option", name="graph", exact=True).click()
+    choose_option(frame, "Relaxation", "graph")
     message = frame.get_by_text("disconnected: 2 components [0-2]; [3-5]", exact=False)
     message.wait_for(timeout=20_000)
     wait_until(lambda: viewer.controls.colour.value == "component", 10, "the view did not colour by component")

@@ -8,6 +8,7 @@ import time
 import imageio_ffmpeg
 import numpy as np
 import pytest
+from playwright.sync_api import TimeoutError as PlaywrightTimeoutError
 
 from slam6d.geometry import quaternion_to_rotation
 from tests.browser.conftest import viewer_frame
@@ -19,6 +20,22 @@ def input_of(frame, label: str):  # type: ignore[no-untyped-def]
     """The input element of a labelled viser control."""
     exact = re.compile(f"^{re.escape(label)}$")
     return frame.locator("label", has_text=exact).locator("xpath=ancestor::div[2]").locator("input").first
+
+
+def choose_option(frame, label: str, option: str, attempts: int = 3) -> None:  # type: ignore[no-untyped-def]
+    """Pick ``option`` in a viser dropdown as a person does: open it, click the option.
+
+    On a cold first page the panel may still be laid out while the list opens, so the option is
+    never "stable" for Playwright; the list is closed and opened again (as a person would)."""
+    for attempt in range(attempts):
+        input_of(frame, label).click()
+        try:
+            frame.get_by_role("option", name=option, exact=True).click(timeout=10_000)
+            return
+        except PlaywrightTimeoutError:
+            if attempt == attempts - 1:
+                raise
+            frame.locator("body").press("Escape")
 
 
 def test_add_two_keyframes_render_and_download(corridor_sessions, live_server, new_browser, artifacts_dir, tmp_path):
@@ -55,8 +72,7 @@ def test_add_two_keyframes_render_and_download(corridor_sessions, live_server, n
     # the preview draws one frustum per keyframe
     assert len(viewer.fly_through._frustums) == 2
     # "Go to" the first keyframe: this browser's camera returns to the first view
-    input_of(frame, "Keyframe").click()
-    frame.get_by_role("option", name="1", exact=True).click()
+    choose_option(frame, "Keyframe", "1")
     frame.get_by_role("button", name="Go to").click()
     client = next(iter(viewer.server.get_clients().values()))
     deadline = time.monotonic() + 10
@@ -70,8 +86,7 @@ def test_add_two_keyframes_render_and_download(corridor_sessions, live_server, n
         assert time.monotonic() < deadline, "the keyframes were not reordered"
         time.sleep(0.05)
 
-    input_of(frame, "Size").click()
-    frame.get_by_role("option", name="320x240").click()
+    choose_option(frame, "Size", "320x240")
     frames_input = input_of(frame, "Frames (0: from path)")
     frames_input.fill("10")
     frames_input.press("Enter")
