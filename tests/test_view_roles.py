@@ -2,32 +2,15 @@
 
 from __future__ import annotations
 
-import msgspec
-from viser._messages import GuiUpdateMessage, TransformControlsUpdateMessage, ViewerCameraMessage
+from viser._messages import GuiUpdateMessage, TransformControlsUpdateMessage
 
 from app.tokens import Grant, Role
 from app.view_roles import may_send, message_type
+from tests.viser_protocol import CAMERA, encoded
 
 
 def grant(role: Role) -> Grant:
     return Grant("t", role, "corridor", role.name, "", None, False)
-
-
-CAMERA = ViewerCameraMessage(
-    position=(1.0, 2.0, 3.0),
-    wxyz=(1.0, 0.0, 0.0, 0.0),
-    fov=1.0,
-    near=0.01,
-    far=100.0,
-    image_height=480,
-    image_width=640,
-    look_at=(0.0, 0.0, 0.0),
-    up_direction=(0.0, 0.0, 1.0),
-).as_serializable_dict()
-
-
-def encoded(message: dict) -> bytes:
-    return msgspec.msgpack.encode(message)
 
 
 def test_only_the_camera_of_a_viewer_or_reviewer_reaches_the_view() -> None:

@@ -9,31 +9,19 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 
-import msgspec
 import pytest
 import viser
-from viser._messages import ViewerCameraMessage
 from websockets.sync.client import ClientConnection, connect
 
 from app.resources import ResourceLimits
 from app.server import create_app
 from tests.session_fixtures import corridor_session
+from tests.viser_protocol import CAMERA as CAMERA_MESSAGE
+from tests.viser_protocol import encoded
 
 GRACE = 2.0
 
-CAMERA = msgspec.msgpack.encode(
-    ViewerCameraMessage(
-        position=(1.0, 2.0, 3.0),
-        wxyz=(1.0, 0.0, 0.0, 0.0),
-        fov=1.0,
-        near=0.01,
-        far=100.0,
-        image_height=480,
-        image_width=640,
-        look_at=(0.0, 0.0, 0.0),
-        up_direction=(0.0, 0.0, 1.0),
-    ).as_serializable_dict()
-)
+CAMERA = encoded(CAMERA_MESSAGE)
 
 
 def until(condition: Callable[[], bool], timeout: float = 20.0) -> None:
