@@ -78,7 +78,9 @@ def test_second_browser_sees_the_first_ones_edit(corridor_sessions, live_server,
     assert np.allclose(viewer.scans.poses[3], workbench.current_poses("corridor")[3])
     undo = workbench.state("corridor").session.journal.entries()[-1]
     assert (undo.kind, undo.author) == ("undo", "bob")
-    # Ctrl+Shift+Z in the second browser redoes it, for both
+    # Ctrl+Shift+Z in the second browser redoes it, for both. The page's shortcuts step from the
+    # revision its header shows (a retry must not step twice), which it polls every 2 s: wait for it.
+    second.locator("#revision").filter(has_text=re.compile(r"^revision 0$")).wait_for(timeout=10_000)
     second.locator("body").press("Control+Shift+Z")
     viewer_frame(first).get_by_text("revision 1", exact=False).first.wait_for(timeout=10_000)
     assert workbench.state("corridor").session.revision == 1
