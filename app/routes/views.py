@@ -1,8 +1,9 @@
 """The 3D views: each session's viser client (page and websocket) behind the workbench's port, and its status.
 
-A session has one live 3D view (the head, shared by everyone on it) and, while a permalink to an
-older revision is open, a read-only view of that revision (:mod:`app.view.revision_view`). Presence,
-camera, colour mode and selection routes find a browser by its view key in either.
+A session has one live 3D view (the head, shared by everyone on it) and private read-only views
+(:mod:`app.view.revision_view`, a scene per browser): of an older revision while a permalink to it
+is open, and of the head for browsers in colours of their own. Presence, camera, colour mode and
+selection routes find a browser by its view key in any of them.
 
 Included only when the app serves 3D views (``create_app(viewers=True)``).
 """
@@ -66,6 +67,17 @@ async def viser_socket_as(websocket: WebSocket, session_id: str, view_key: str) 
 @router.websocket("/viser/{session_id}/at/{revision}/as/{view_key}")
 async def viser_socket_at(websocket: WebSocket, session_id: str, revision: int, view_key: str) -> None:
     """An older revision's 3D view (a permalink to it): read-only, whatever the browser's role."""
+    await _private_socket(websocket, session_id, revision, view_key[:64])
+
+
+@router.websocket("/viser/{session_id}/head/as/{view_key}")
+async def viser_socket_head(websocket: WebSocket, session_id: str, view_key: str) -> None:
+    """The head in the browser's own colours (a viewer or reviewer whose colour mode is not the live
+    view's): read-only, following every new revision."""
+    await _private_socket(websocket, session_id, None, view_key[:64])
+
+
+async def _private_socket(websocket: WebSocket, session_id: str, revision: int | None, view_key: str) -> None:
     views: RevisionViews = websocket.app.state.revision_views
     try:
         view = await run_in_threadpool(views.get, session_id, revision)
@@ -77,10 +89,10 @@ async def viser_socket_at(websocket: WebSocket, session_id: str, revision: int, 
         return
     state = websocket.scope.setdefault("state", {})
     grant = state.get("grant", OPEN_GRANT)
-    state["grant"] = replace(grant, role=min(grant.role, Role.viewer))  # only its camera reaches the view
+    state["grant"] = replace(grant, role=min(grant.role, Role.viewer))  # its camera and clicks reach the view
     upstream = await open_upstream(websocket, view.port)
     if upstream is not None:
-        await forward_socket(websocket, upstream, presence_of(view), view_key[:64])
+        await forward_socket(websocket, upstream, presence_of(view), view_key, private=True)
 
 
 async def _socket(websocket: WebSocket, session_id: str, view_key: str | None) -> None:
@@ -98,16 +110,19 @@ async def _socket(websocket: WebSocket, session_id: str, view_key: str | None) -
 
 
 @router.get("/api/sessions/{session_id}/view", tags=["view"])
-def view_status(session_id: str, request: Request, rev: RevisionQuery = None) -> dict[str, Any]:
+def view_status(session_id: str, request: Request, rev: RevisionQuery = None, own: bool = False) -> dict[str, Any]:
     """State of the session's 3D view (starts it if needed): ready, points shown, revision shown, colour.
 
     With ``rev`` naming an older revision: that revision's read-only view (what a permalink to it
-    draws), with each scan's position there."""
+    draws), with each scan's position there; with ``own=true``: the view of the head in browsers' own
+    colours, with each browser's colour mode. 409 when the server has no room for another such view."""
     registry: ViewerRegistry = request.app.state.viewers
     live = registry.get(session_id)
+    views: RevisionViews = request.app.state.revision_views
+    if own:
+        return views.get(session_id, None).as_dict()
     if rev is None or rev == live.state.session.revision:
         return live.as_dict()
-    views: RevisionViews = request.app.state.revision_views
     return views.get(session_id, rev).as_dict()
 
 
@@ -135,10 +150,25 @@ class SelectionBody(BaseModel):
 
 
 def _views(request: Request, session_id: str) -> list[tuple[int | None, Any]]:
-    """The session's 3D views: the live one (revision None: the head) and its open older revisions."""
+    """The session's 3D views: the live one (revision None: the head), the head in browsers' own colours
+    (None too) and its open older revisions."""
     registry: ViewerRegistry = request.app.state.viewers
     views: RevisionViews = request.app.state.revision_views
-    return [(None, registry.get(session_id)), *((v.revision, v) for v in views.of_session(session_id))]
+    private = ((None if v.follows_head else v.revision, v) for v in views.of_session(session_id))
+    return [(None, registry.get(session_id)), *private]
+
+
+def _kind(view: Any) -> str:
+    """Which of the session's views: ``live`` (shared), ``own`` (the head in own colours) or ``old``."""
+    if not isinstance(view, RevisionView):
+        return "live"
+    return "own" if view.follows_head else "old"
+
+
+def _picked(person: Person) -> dict[str, Any]:
+    """What the browser last picked in the 3D view itself, and how many picks it made there (the page polls it)."""
+    marker = marker_of(person.client)
+    return {"picks": marker.picks, "picked": None if marker.last_pick is None else marker.last_pick.text()}
 
 
 def _presence(request: Request, session_id: str) -> Presence:
@@ -168,12 +198,17 @@ def _own(request: Request, session_id: str, key: str) -> tuple[Any, Presence, Pe
 @router.get("/api/sessions/{session_id}/presence", tags=["view"])
 def presence(session_id: str, request: Request) -> list[dict[str, Any]]:
     """Who has the session's 3D views open: view key, name, role, seconds idle, whom they follow, camera,
-    and ``revision`` (null: the live head; a number: an older revision opened from a permalink)."""
-    return [
-        {**person, "revision": revision}
-        for revision, view in _views(request, session_id)
-        for person in presence_of(view).listed()
-    ]
+    ``revision`` (null: the head; a number: an older revision opened from a permalink), ``view`` (``live``,
+    ``own`` - the head in their own colours - or ``old``) and what they last picked in the 3D view
+    (``picked``, as a link's ``sel``; ``picks`` counts those picks)."""
+    listed = []
+    for revision, view in _views(request, session_id):
+        presence = presence_of(view)
+        for entry in presence.listed():
+            person = presence.person(entry["key"])
+            picks = {"picks": 0, "picked": None} if person is None else _picked(person)
+            listed.append({**entry, "revision": revision, "view": _kind(view), **picks})
+    return listed
 
 
 @router.get("/api/sessions/{session_id}/presence/{key}/camera", tags=["view"])
@@ -192,15 +227,21 @@ def place_camera(session_id: str, key: str, body: CameraBody, request: Request) 
 
 @router.post("/api/sessions/{session_id}/presence/{key}/colour", tags=["view"], openapi_extra=requires(Role.viewer))
 def set_colour(session_id: str, key: str, body: ColourBody, request: Request) -> dict[str, Any]:
-    """Your 3D view's colour mode. On an older revision's view it is yours alone; the live view's colouring
-    is one setting shared by everyone on it (its "Colour by" control), so only an editor changes it."""
+    """Your 3D view's colour mode. On a private view (an older revision, or the head in your own colours) it
+    is yours alone; the live view's colouring is one setting shared by everyone on it (its "Colour by"
+    control), so only an editor changes it there - the page moves anyone else to the head in their own
+    colours (``/viser/{id}/head/as/{key}``)."""
     view, _presence, person = _own(request, session_id, key)
     if isinstance(view, RevisionView):
         view.set_colour(person.client.client_id, body.mode)
         return {"key": key, "colour": body.mode, "shared": False}
     grant = getattr(request.state, "grant", OPEN_GRANT)
     if grant.role < Role.editor:
-        raise EditError("the live 3D view's colouring is shared by everyone on it: only an editor changes it", 403)
+        raise EditError(
+            "the shared 3D view's colouring is everyone's on it: only an editor changes it; "
+            "your own colours are drawn in a view of your own (the page opens it)",
+            403,
+        )
     view.controls.colour.value = body.mode  # as the control itself: everyone's view is recoloured
     return {"key": key, "colour": body.mode, "shared": True}
 

@@ -63,11 +63,15 @@ _announcing: dict[int, asyncio.Lock] = {}  # per presence: one browser announced
 
 
 async def forward_socket(
-    websocket: WebSocket, upstream: ClientConnection, presence: Presence | None = None, key: str | None = None
+    websocket: WebSocket,
+    upstream: ClientConnection,
+    presence: Presence | None = None,
+    key: str | None = None,
+    private: bool = False,
 ) -> None:
     """Accept the browser's websocket and join it to the view's internal one until either side closes.
 
-    What a browser below editor sends is filtered (:mod:`app.view_roles`). With ``presence`` and a view
+    What a browser below editor sends is filtered (:mod:`app.view_roles`; ``private``: a view of its own). With ``presence`` and a view
     ``key`` (the session page's own 3D view), the browser's first camera message - the one that makes
     viser register it - goes through :meth:`Presence.announce`, so the view knows that client's key,
     name and role.
@@ -98,7 +102,7 @@ async def forward_socket(
             if message["type"] == "websocket.disconnect":
                 return
             payload = message.get("bytes") if message.get("bytes") is not None else message.get("text")
-            if payload is None or not may_send(grant, payload):  # a viewer's clicks and drags stop here
+            if payload is None or not may_send(grant, payload, private):  # a viewer's clicks and drags stop here
                 continue
             if unannounced and isinstance(payload, bytes) and message_type(payload) == "ViewerCameraMessage":
                 unannounced = False

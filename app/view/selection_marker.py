@@ -1,4 +1,4 @@
-"""The selected scan, edge or loop hypothesis, marked in one browser's own scene.
+"""The selected scan, edge or loop hypothesis, marked in one browser's own scene, and what it picked in the 3D view.
 
 A selection belongs to the person looking (a permalink carries it to a teammate), not to the
 session: the marker is added to that browser's scene only (``client.scene``), so others on the same
@@ -35,6 +35,16 @@ class SelectionMarker:
     def __init__(self, client: Any) -> None:
         self.client = client
         self.handles: list[Any] = []
+        self.picks = 0  # how many times something was picked in the 3D view itself (the page polls it)
+        self.last_pick: Any = None  # the latest of them (an app.permalink.Selection)
+
+    def picked(self, selection: Any) -> None:
+        """The browser picked ``selection`` in the 3D view itself (a click on a scan, an edge or a loop
+        hypothesis chosen in a panel). Only recorded here: the browser's page, which polls it, makes it
+        the page's selection - marked through :meth:`show`, described and put in the address - like one
+        made in the page. Counting the picks lets the page tell a new pick from an old one."""
+        self.last_pick = selection
+        self.picks += 1
 
     def show(
         self, selection: Any, poses: Sequence[Matrix], bounds: Callable[[int], tuple[np.ndarray, np.ndarray]]

@@ -7,10 +7,13 @@ from typing import Any
 import numpy as np
 
 from app.editing import editor_for
+from app.permalink import Selection
 from app.view import display
 from app.view.controls import NO_CHOICE
+from app.view.panels.edges import edge_pair
 from app.view.panels.host import ViewerHost
 from app.view.panels.paging import Pager
+from app.view.selection_marker import marker_of
 from slam6d.relaxation_methods import RELAXATION_METHODS
 from slam6d.residuals import displacements
 
@@ -26,6 +29,7 @@ class LoopsPanel:
             self.table = gui.add_markdown("No loop hypotheses yet.")
             self.pages = Pager(gui, "Hypotheses page", lambda: viewer.run_safely(self.refresh))
             self.choice = gui.add_dropdown("Hypothesis", [NO_CHOICE])
+            self.choice_scans: dict[str, tuple[int, int]] = {}  # the options -> their scan pairs
             self.accept = gui.add_button("Accept loop")
             self.reject = gui.add_button("Reject loop")
             self.close = gui.add_button("Close loops (error diffusion)")
@@ -42,6 +46,7 @@ class LoopsPanel:
             lambda e: run(lambda: self._submit("close-loops", self.editor.relaxation.close_loops_job, e))
         )
         self.relax.on_click(lambda e: run(lambda: self._relax(e)))
+        self.choice.on_update(lambda e: run(lambda: self._chosen(e)))
         self.before.on_update(lambda _: run(self._show_before))
         self.by_displacement.on_update(lambda _: run(self._colour))
 
@@ -60,6 +65,12 @@ class LoopsPanel:
         k = int(self.choice.value.split(":")[0])
         self.editor.loops.decide(self.session_id, k, accept, self.viewer.author(event))
 
+    def _chosen(self, event: Any) -> None:
+        """A hypothesis chosen by a person (not by a refresh) is that browser's selection too."""
+        scans = self.choice_scans.get(self.choice.value)
+        if event.client is not None and scans is not None:
+            marker_of(event.client).picked(Selection("loop", *scans))
+
     def refresh(self) -> None:
         listed = self.editor.loops.listed(self.session_id)
         if not listed:
@@ -76,7 +87,8 @@ class LoopsPanel:
                 "| # | scans | dist (m) | overlap | ICP fitness | verified | status |\n|---|---|---|---|---|---|---|"
             )
             self.table.content = header + "\n" + "\n".join(rows) + (f"\n\n{caption}" if caption else "")
-            options = [f"{h['k']}: scans {h['i']}–{h['j']} ({h['status']})" for h in listed]
+            self.choice_scans = {f"{h['k']}: scans {h['i']}–{h['j']} ({h['status']})": edge_pair(h) for h in listed}
+            options = list(self.choice_scans)
             previous = self.choice.value.split(":")[0]
             self.choice.options = options
             self.choice.value = next((o for o in options if o.split(":")[0] == previous), options[0])  # type: ignore[misc]
