@@ -53,7 +53,8 @@ def test_a_viewer_link_with_another_colour_mode_is_drawn_in_it_while_the_editor_
         expected = display.ramp(display.world_heights(own.local[k], own.poses[k]), low, high)
         drawn = _scan_colours(scene.nodes[k])
         assert drawn.shape == (len(own.local[k]), 3) and np.array_equal(drawn, np.asarray(expected, np.uint8))
-    _wait(lambda: "colour=height" in _address(vic), what="vic's address")
+    _wait(lambda: _view_state(vic)["colour"] == "height", what="vic's page restoring the link's colour")
+    assert "colour=height" in _address(vic)
     state = _view_state(vic)
     assert state["own"] is True and state["colour"] == "height" and vic.locator("#colour").input_value() == "height"
     # ann, an editor on the shared live view, keeps its colouring: one colour per scan
@@ -62,9 +63,9 @@ def test_a_viewer_link_with_another_colour_mode_is_drawn_in_it_while_the_editor_
         assert np.array_equal(_scan_colours(live.scans.nodes[k]), display.scan_color(k))
     assert ann.locator("#colour").input_value() == "scan" and _view_state(ann)["own"] is False
 
-    # an edit moves the head: vic's view follows it, still in vic's colours
+    # an edit moves the head (scan 3 lifted 30 m): vic's view follows it, still in vic's colours
     pose = server.workbench.current_poses("corridor")[3].copy()
-    pose[2, 3] += 2.0
+    pose[2, 3] += 30.0
     moved = httpx.post(
         f"{server.url}/api/sessions/corridor/scans/3/pose",
         json={"pose": pose.tolist()},
@@ -79,11 +80,36 @@ def test_a_viewer_link_with_another_colour_mode_is_drawn_in_it_while_the_editor_
     assert np.array_equal(_scan_colours(scene.nodes[3]), np.asarray(expected, np.uint8))
     assert live.as_dict()["colour"] == "scan"
 
+    # a click on scan 3 in vic's own view selects it there, and vic's address carries it
+    target = own.local[3].astype(np.float64).mean(axis=0) @ pose[:3, :3].T + pose[:3, 3]
+    person.client.camera.position = target + np.array([-25.0, -25.0, 15.0])
+    person.client.camera.look_at = target
+    _wait(lambda: np.allclose(person.client.camera.look_at, target, atol=1e-3), what="vic's camera")
+    canvas = viewer_frame(vic).locator("canvas[data-engine]")
+    box = canvas.bounding_box()
+    assert box is not None
+    canvas.click(position={"x": box["width"] / 2, "y": box["height"] / 2})
+    _wait(lambda: "sel=scan:3" in _address(vic), what="vic's pick in the address")
+    vic.locator("#selection-title").get_by_text("Scan 3").wait_for(timeout=10_000)
+
     # the viewer's colour control changes only its own view
     vic.locator("#colour").select_option("component")
     _wait(lambda: own.as_dict()["colours"].get(str(person.client.client_id)) == "component", what="vic's recolour")
     _wait(lambda: "colour=component" in _address(vic), what="the address following the colour")
     assert live.as_dict()["colour"] == "scan"
+
+    # a reviewer on the shared view who picks another colour is moved to the head in own colours
+    reviewer, _ = server.app.state.tokens.issue(Role.reviewer, "corridor", name="rita")
+    rita = new_browser()
+    rita.goto(f"{server.url}/sessions/corridor?token={reviewer}")
+    viewer_frame(rita).get_by_text("points shown").wait_for(timeout=60_000)
+    rita_key = _view_state(rita)["key"]
+    _wait(lambda: presence_of(live).person(rita_key), what="rita on the shared view")
+    assert _view_state(rita)["own"] is False
+    rita.locator("#colour").select_option("residual")
+    moved_on = _wait(lambda: presence_of(own).person(rita_key), what="rita on the view in own colours")
+    _wait(lambda: own.as_dict()["colours"].get(str(moved_on.client.client_id)) == "residual", what="rita's colours")
+    assert live.as_dict()["colour"] == "scan" and own.as_dict()["colours"][str(person.client.client_id)] == "component"
 
 
 def test_a_scan_picked_in_the_3d_view_goes_into_the_address_and_a_fresh_browser_opens_it_selected(
