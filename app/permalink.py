@@ -56,6 +56,11 @@ class Selection:
     i: int
     j: int | None = None
 
+    @classmethod
+    def pair(cls, kind: str, i: int, j: int) -> Selection:
+        """An edge or loop hypothesis by its scans, named as a link names it: lower scan first."""
+        return cls(kind, int(min(i, j)), int(max(i, j)))
+
     def text(self) -> str:
         return f"scan:{self.i}" if self.kind == "scan" else f"{self.kind}:{self.i}-{self.j}"
 

@@ -13,7 +13,6 @@ from app.view.panels.host import ViewerHost
 from app.view.panels.paging import Pager
 from app.view.selection_marker import marker_of
 from slam6d.geometry import make_pose, quaternion_to_rotation, rotation_to_quaternion
-from slam6d.session_graph import edge_key
 
 PICKED_A = (255, 255, 255)
 PICKED_B = (255, 60, 200)
@@ -28,7 +27,7 @@ class EdgesPanel:
         gui = viewer.server.gui
         self.next_pick = "A"  # clicks in the view alternate: A, then B
         self.chosen: set[str] = set()  # "A", "B": drawn highlighted once someone picked or typed them
-        self.edge_scans: dict[str, tuple[int, int]] = {}  # the Edge dropdown's options -> their scan pairs
+        self.edge_choices: dict[str, Selection] = {}  # the Edge dropdown's options -> the edges they name
         with gui.add_folder("Edit graph", expand_by_default=False):
             self.pick_status = gui.add_markdown("Click a scan in the view to pick scan A, then B.")
             self.scan_a = gui.add_number("Scan A", 0, min=0, step=1)
@@ -65,9 +64,9 @@ class EdgesPanel:
 
     def _edge_chosen(self, event: Any) -> None:
         """An edge chosen in the dropdown by a person (not by a refresh) is that browser's selection too."""
-        scans = self.edge_scans.get(self.edge.value)
-        if event.client is not None and scans is not None:
-            marker_of(event.client).picked(Selection("edge", *scans))
+        chosen = self.edge_choices.get(self.edge.value)
+        if event.client is not None and chosen is not None:
+            marker_of(event.client).picked(chosen)
 
     def pick(self, k: int) -> None:
         """Scan ``k`` becomes A or B (alternating), as if typed in, and is highlighted."""
@@ -166,16 +165,12 @@ class EdgesPanel:
 
     def refresh(self) -> None:
         edges, _ = self.edge_pages.page(self.editor.edges.listed(self.session_id), "edges")
-        self.edge_scans = {f"{e['k']}: {e['i']}–{e['j']} {e['kind']}": edge_pair(e) for e in edges}
-        options = list(self.edge_scans) or [NO_CHOICE]
+        self.edge_choices = {
+            f"{e['k']}: {e['i']}–{e['j']} {e['kind']}": Selection.pair("edge", e["i"], e["j"]) for e in edges
+        }
+        options = list(self.edge_choices) or [NO_CHOICE]
         previous = self.edge.value
         self.edge.options = options
         self.edge.value = previous if previous in options else options[0]  # type: ignore[misc]
         count = len(self.viewer.workbench.current_poses(self.session_id))
         self.scan_a.max = self.scan_b.max = max(count - 1, 0)
-
-
-def edge_pair(edge: dict[str, Any]) -> tuple[int, int]:
-    """An edge's or loop hypothesis' scans in ascending order, as a permalink names them (``edge:I-J``)."""
-    i, j = edge_key(int(edge["i"]), int(edge["j"]))
-    return i, j

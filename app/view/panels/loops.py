@@ -10,7 +10,6 @@ from app.editing import editor_for
 from app.permalink import Selection
 from app.view import display
 from app.view.controls import NO_CHOICE
-from app.view.panels.edges import edge_pair
 from app.view.panels.host import ViewerHost
 from app.view.panels.paging import Pager
 from app.view.selection_marker import marker_of
@@ -29,7 +28,7 @@ class LoopsPanel:
             self.table = gui.add_markdown("No loop hypotheses yet.")
             self.pages = Pager(gui, "Hypotheses page", lambda: viewer.run_safely(self.refresh))
             self.choice = gui.add_dropdown("Hypothesis", [NO_CHOICE])
-            self.choice_scans: dict[str, tuple[int, int]] = {}  # the options -> their scan pairs
+            self.choices: dict[str, Selection] = {}  # the options -> the hypotheses they name
             self.accept = gui.add_button("Accept loop")
             self.reject = gui.add_button("Reject loop")
             self.close = gui.add_button("Close loops (error diffusion)")
@@ -67,9 +66,9 @@ class LoopsPanel:
 
     def _chosen(self, event: Any) -> None:
         """A hypothesis chosen by a person (not by a refresh) is that browser's selection too."""
-        scans = self.choice_scans.get(self.choice.value)
-        if event.client is not None and scans is not None:
-            marker_of(event.client).picked(Selection("loop", *scans))
+        chosen = self.choices.get(self.choice.value)
+        if event.client is not None and chosen is not None:
+            marker_of(event.client).picked(chosen)
 
     def refresh(self) -> None:
         listed = self.editor.loops.listed(self.session_id)
@@ -87,8 +86,11 @@ class LoopsPanel:
                 "| # | scans | dist (m) | overlap | ICP fitness | verified | status |\n|---|---|---|---|---|---|---|"
             )
             self.table.content = header + "\n" + "\n".join(rows) + (f"\n\n{caption}" if caption else "")
-            self.choice_scans = {f"{h['k']}: scans {h['i']}–{h['j']} ({h['status']})": edge_pair(h) for h in listed}
-            options = list(self.choice_scans)
+            self.choices = {
+                f"{h['k']}: scans {h['i']}–{h['j']} ({h['status']})": Selection.pair("loop", h["i"], h["j"])
+                for h in listed
+            }
+            options = list(self.choices)
             previous = self.choice.value.split(":")[0]
             self.choice.options = options
             self.choice.value = next((o for o in options if o.split(":")[0] == previous), options[0])  # type: ignore[misc]
