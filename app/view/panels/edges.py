@@ -60,7 +60,8 @@ class EdgesPanel:
             self.pick_status.content = f"No scan under the cursor; the next click still picks scan {self.next_pick}."
             return
         self.pick(k)
-        marker_of(event.client).picked(Selection("scan", k))  # the clicking browser's page selects it too
+        if event.client is not None:  # the clicking browser's page selects it too
+            marker_of(event.client).picked(Selection("scan", k))
 
     def _edge_chosen(self, event: Any) -> None:
         """An edge chosen in the dropdown by a person (not by a refresh) is that browser's selection too."""
