@@ -159,15 +159,21 @@ def profile_relaxation(directory: Path) -> None:
     profile.disable()
     seconds = time.perf_counter() - began
     stats = pstats.Stats(profile).stats  # type: ignore[attr-defined]
-    split = {
-        part: sum(
-            row[3]
-            for (filename, _line, function), row in stats.items()
-            if any(filename.endswith("slam6d/" + module) and function == name for module, name in functions)
+    split = {  # part: (cumulative seconds, calls)
+        part: np.sum(
+            [
+                (row[3], row[1])
+                for (filename, _line, function), row in stats.items()
+                if any(filename.endswith("slam6d/" + module) and function == name for module, name in functions)
+            ]
+            or [(0.0, 0)],
+            axis=0,
         )
         for part, functions in RELAXATION_PARTS.items()
     }
-    shares = ", ".join(f"{part} {t:.1f} s ({100 * t / seconds:.0f} %)" for part, t in split.items())
+    shares = ", ".join(
+        f"{part} {t:.1f} s ({100 * t / seconds:.0f} %, {int(calls)} calls)" for part, (t, calls) in split.items()
+    )
     print(
         f"| {directory.name} | {len(pipeline.poses)} | {seconds:.1f} s | {result.iterations} | {len(result.neighbours):,}"
         f" | {shares} | {os.getloadavg()[0]:.1f} |",
