@@ -5,7 +5,7 @@ per cube so that dense regions near the scanner do not dominate the error, and t
 scores a candidate pose by how many data cubes land in occupied model cubes. Cubes are addressed by
 integer cell coordinates packed into one int64 (21 bits per axis), so set operations on cubes are
 integer operations. Lookups use a small open-addressing hash table compiled with numba: a scan of
-100k points is reduced in about a millisecond, and the search scores tens of millions of
+100k points is reduced in about a millisecond, and the search scores hundreds of millions of
 (point, candidate) pairs per second.
 """
 
@@ -404,7 +404,7 @@ class Occupancy:
     @cached_property
     def tile_masks(self) -> tuple[IntArray, NDArray[np.uint64]]:
         """The occupied cubes as 4 x 4 x 4 tiles with a 64-bit mask each (built on first use): the
-        search's shifts around a point then cost a bit test each rather than a hash lookup."""
+        search reads the few tiles around a point once instead of a hash lookup per shift."""
         return _build_tiles(self.keys, np.int64(_table_size(len(self.keys))))
 
 
