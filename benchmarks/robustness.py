@@ -159,9 +159,12 @@ def startup_cpu() -> float:
         "import numpy as np, slam6d.cli, slam6d.pipeline, slam6d.io.registry;"
         "from slam6d.octree import reduce_points; reduce_points(np.zeros((10, 3)), 0.1)"
     )
-    before = children_cpu()
-    subprocess.run([sys.executable, "-c", code], check=True, env=os.environ | {"PYTHONPATH": str(ROOT)})
-    return children_cpu() - before
+    costs = []
+    for _ in range(2):  # the first may recompile kernels whose cached code is stale (an edited module)
+        before = children_cpu()
+        subprocess.run([sys.executable, "-c", code], check=True, env=os.environ | {"PYTHONPATH": str(ROOT)})
+        costs.append(children_cpu() - before)
+    return min(costs)
 
 
 def children_cpu() -> float:

@@ -577,7 +577,7 @@ class Pipeline:
             # a few degrees off in a wrong basin that still pairs more than the bar asks. ICP again
             # from the prediction, coarse to fine, and keep the better fit. Not the first try: on
             # the hand-held indoor walks a 1 m first stage pairs the wrong walls of a room.
-            yield ScanStarted(index, predicted.copy(), guess, members, "coarse")
+            yield ScanStarted(index, predicted.copy(), None, members, "coarse")
             coarse = yield from self._run_icp(index, model, world_from_model, predicted, self._predicted_config)
             tries.append(("coarse", coarse))
             outcome = better_fit(outcome, coarse)
