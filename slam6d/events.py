@@ -38,7 +38,8 @@ class ScanStarted:
     initial: Matrix  # world_from_scan ICP starts from
     guess: GuessResult | None
     model_indices: list[int]
-    source: str = "start"  # where ``initial`` came from: start (prediction), octree or features
+    source: str = "start"  # where ``initial`` came from: start (prediction), octree, features or coarse
+    # (the prediction again, ICP coarse to fine)
 
 
 @dataclass

@@ -18,9 +18,11 @@ Search design (why it stays cheap):
   because of the next point.
 * Translation steps equal the cube size, so shifting a rotated point by ``(a, b, c)`` steps shifts
   its cube by exactly ``(a, b, c)``: for each rotation the data points are transformed and
-  discretised once, and every translation is an integer add plus a hash lookup. The rotation grid
-  is small (the angle step is the angle that moves a far point by one cube), so the full grid costs
-  ``rotations x points x translations`` lookups, tens of millions per level, in a numba kernel.
+  discretised once, and the translations are the cells of a small box around it: the occupied model
+  cubes in that box (read as a few 64-bit tile masks) each credit the translation that reaches
+  them (:meth:`Occupancy.count_hits`). The rotation grid is small (the angle step is the angle that
+  moves a far point by one cube), so a level costs ``rotations x points`` box reads, a few
+  milliseconds in a serial numba kernel.
 * Data points are reduced to one real point per data cube of the level (and evenly thinned to
   ``max_points``), so the score counts cubes, not points, and dense near-range returns do not
   dominate it.

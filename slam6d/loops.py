@@ -63,6 +63,7 @@ from slam6d.icp import ICPConfig, ICPResult, icp
 from slam6d.initial_guess import GuessResult, OctreeSearchConfig, config_for, octree_guess
 from slam6d.model import ModelIndex
 from slam6d.octree import Occupancy, Octree
+from slam6d.pair import coarse_to_fine
 from slam6d.relax import ScanModels
 
 FloatArray = NDArray[np.float64]
@@ -338,8 +339,7 @@ def verify(
     start = hypothesis.transform if hypothesis.transform is not None else np.eye(4)
     data_points = np.asarray(data_points, dtype=np.float64)
     d = icp_config.max_distance
-    schedule = tuple(s for s in (4 * d, 2 * d) if not icp_config.distance_schedule) or icp_config.distance_schedule
-    cfg = replace(icp_config, distance_schedule=schedule)
+    cfg = coarse_to_fine(icp_config)
     fitness_bar = config.fitness_bar(usual)
     verdict = replace(hypothesis, transform=start)
     result: ICPResult | RegistrationError

@@ -11,7 +11,7 @@ traces of both searches, so a caller can show how the answer was reached.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -64,6 +64,20 @@ Outcome = ICPResult | RegistrationError
 def is_poor(outcome: Outcome, min_fitness: float = MIN_FITNESS) -> bool:
     """Whether an ICP outcome calls for the octree search: it failed, or paired too few points."""
     return isinstance(outcome, RegistrationError) or outcome.fitness < min_fitness
+
+
+def coarse_to_fine(config: ICPConfig, factors: tuple[float, ...] = (4.0, 2.0)) -> ICPConfig:
+    """``config`` with first stages at ``factors`` x its max distance (unless it has a schedule).
+
+    For a start that may be further off than the tolerance used between well-predicted scans: a
+    loop's drifted start, or a constant-velocity prediction when the motion changed. At the max
+    distance alone, ICP from a start a few degrees off in yaw pairs the far points with the wrong
+    neighbours and can settle in a wrong basin; a first stage at four times the distance pairs them
+    with their own surfaces and costs little once the scans are close.
+    """
+    if config.distance_schedule:
+        return config
+    return replace(config, distance_schedule=tuple(f * config.max_distance for f in factors))
 
 
 def better_fit(first: Outcome, second: Outcome) -> Outcome:

@@ -127,6 +127,14 @@ def test_count_hits_matches_a_brute_force_count() -> None:
             expected = occupancy.contains(moved + shift * 0.5).sum()
             assert abs(int(hits[r, s]) - int(expected)) <= 1  # a point on a cube face may round either way
     assert hits[0, 0] > 0
+    # the search's own shifts: a full 5 x 5 x 3 box in C order, scored as a whole
+    box = np.stack(np.meshgrid(np.arange(-2, 3), np.arange(-2, 3), np.arange(-1, 2), indexing="ij"), -1).reshape(-1, 3)
+    hits = occupancy.count_hits(points, rotations, pivot, box)
+    for r, rotation in enumerate(rotations):
+        moved = (points - pivot) @ rotation.T + pivot
+        expected = np.array([occupancy.contains(moved + shift * 0.5).sum() for shift in box])
+        assert np.abs(hits[r] - expected).max() <= 1
+        assert hits[r].sum() > 0
 
 
 def test_octree_of_degenerate_clouds() -> None:
