@@ -87,7 +87,7 @@ def test_the_name_cookie_is_decoded_the_same_way_and_an_invalid_one_ignored() ->
 
 def test_a_token_cannot_be_named_with_control_characters(tmp_path: Path) -> None:
     store = TokenStore(tmp_path)
-    with pytest.raises(TokenError, match="name: .*U\\+001B"):
+    with pytest.raises(TokenError, match=r"name: .*U\+001B"):
         store.issue(Role.viewer, name="evil\x1b[31m")
     assert store.issue(Role.viewer, name="张伟")[1].name == "张伟"
 
