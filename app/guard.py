@@ -73,25 +73,12 @@ class Refusal(BaseModel):
     detail: str
 
 
-class FieldProblem(BaseModel):
-    loc: list[str | int]
-    msg: str
-    type: str
-
-
-class FieldRefusal(BaseModel):
-    """A request refused for one of its fields (as FastAPI's own validation answers)."""
-
-    detail: list[FieldProblem]
-
-
 # documented on every route: what any request may be answered by the guard
 GUARD_RESPONSES: dict[int | str, dict[str, Any]] = {
     400: {"model": Refusal, "description": "Host is not a name of this server (DNS rebinding)"},
     401: {"model": Refusal, "description": "no valid access token (a shared server)"},
     403: {"model": Refusal, "description": "the token's role or session does not allow this, or a cross-site request"},
     415: {"model": Refusal, "description": "a POST without a JSON (or, where taken, form) body"},
-    422: {"model": FieldRefusal, "description": "a field is invalid (e.g. X-Author: too long, control characters)"},
 }
 
 
