@@ -77,7 +77,12 @@ def test_second_browser_sees_the_first_ones_edit(corridor_sessions, live_server,
     while "张伟" not in [p["name"] for p in presence.listed()] and time.monotonic() < deadline:
         time.sleep(0.1)
     assert "张伟" in [p["name"] for p in presence.listed()]
-    second.locator("#people").get_by_text("张伟 (owner)").wait_for(timeout=10_000)
+    second.locator("#people").get_by_text("张伟 (owner)").wait_for(timeout=20_000)
+    # the session pages are told each new head; they do not ask for it (a poll every few seconds left
+    # their shortcuts naming a stale revision in between, and the keypress was refused)
+    reads: dict[str, list[str]] = {"first": [], "second": []}
+    for name, page in (("first", first), ("second", second)):
+        page.on("request", lambda r, n=name: reads[n].append(r.url) if r.url.endswith("/sessions/corridor") else None)
     first.locator("#undo").click()
     # the second browser's 3D view reports the new revision without reloading
     viewer_frame(second).get_by_text("revision 0", exact=False).first.wait_for(timeout=10_000)
@@ -88,10 +93,12 @@ def test_second_browser_sees_the_first_ones_edit(corridor_sessions, live_server,
     assert (undo.kind, undo.author) == ("undo", "张伟")
     # Ctrl+Shift+Z in the second browser the moment its 3D view shows the undo: the page was told the new
     # revision as it was committed (it names it, so a retry is one step), so the redo applies for both
+    assert reads["second"] == [], "the second page read the session instead of being told"
     second.locator("body").press("Control+Shift+Z")
     viewer_frame(first).get_by_text("revision 1", exact=False).first.wait_for(timeout=10_000)
     assert workbench.state("corridor").session.revision == 1
     # and back in the first browser at once: its Ctrl+Z steps from the redo it has just been shown
+    assert len(reads["first"]) == 1  # its own read after its undo, no poll
     first.locator("body").press("Control+Z")
     viewer_frame(second).get_by_text("revision 0", exact=False).first.wait_for(timeout=10_000)
     assert workbench.state("corridor").session.revision == 0
