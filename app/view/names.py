@@ -62,7 +62,7 @@ def name_from_header(raw: str) -> str:
         try:
             text = unquote(text[len(EXTENDED_VALUE_PREFIX) :], encoding="utf-8", errors="strict")
         except UnicodeDecodeError:
-            raise InvalidNameError(f"{raw[:40]!r} is not percent-encoded UTF-8") from None
+            raise InvalidNameError("the name after UTF-8'' is not percent-encoded UTF-8") from None
     elif not text.isascii():
         # raw UTF-8 bytes (what curl -H sends) arrive as Latin-1 characters: read them as UTF-8, unless
         # they are not UTF-8 (Latin-1 text after all)
