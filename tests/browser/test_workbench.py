@@ -48,10 +48,12 @@ def test_corridor_map_is_drawn_through_the_single_port(corridor_sessions, live_s
     open_session(page, server, "corridor")
     assert wait_for_map(page) >= 0.01
     page.screenshot(path=str(artifacts_dir / "workbench_corridor.png"))
-    # one websocket, through the workbench's port, under the page's own view key (presence)
-    assert len(sockets) == 1 and re.fullmatch(
-        rf"ws://127\.0\.0\.1:{server.port}/viser/corridor/as/[0-9a-f]{{16}}", sockets[0]
-    )
+    # two websockets, both through the workbench's port: the 3D view under the page's own view key
+    # (presence) and the session's event stream (each new head, as it is committed)
+    assert len(sockets) == 2, sockets
+    viser, events = sorted(sockets, reverse=True)
+    assert re.fullmatch(rf"ws://127\.0\.0\.1:{server.port}/viser/corridor/as/[0-9a-f]{{16}}", viser)
+    assert events == f"ws://127.0.0.1:{server.port}/api/sessions/corridor/events"
 
 
 def test_second_browser_sees_the_first_ones_edit(corridor_sessions, live_server, new_browser, artifacts_dir):
