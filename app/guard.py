@@ -27,10 +27,12 @@ Then :func:`authorize`, a dependency of every route (it needs the route the requ
 The grant found is left in ``request.state.grant`` (the author's name, what the page may show)
 and the session acted on in ``request.state.session``. Secrets are never logged nor echoed.
 
-**One name per person.** ``grant.name`` is who acts, for the journal (the ``X-Author`` every route
-reads is rewritten from it), comments and presence alike: a token's holder is the token's name,
-whatever the page claims; on an open loopback server it is the name typed in the page header (sent
-as ``X-Author``, and as the ``slam6d-author`` cookie, which the 3D view's websocket carries too).
+**One name per person.** ``grant.name`` is who acts, for the journal (routes take their author from
+it, :data:`app.routes.dependencies.Author`), comments and presence alike: a token's holder is the
+token's name, whatever the page claims; on an open loopback server it is the name typed in the page
+header (sent as ``X-Author`` - percent-encoded UTF-8, so any script travels - and as the
+``slam6d-author`` cookie, which the 3D view's websocket carries too). A name that is too long or
+holds control characters is refused with 422 naming ``X-Author`` (:func:`app.view.names.checked_name`).
 """
 
 from __future__ import annotations
@@ -53,7 +55,7 @@ from starlette.routing import BaseRoute
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from app.tokens import Grant, Role, TokenStore
-from app.view.names import AUTHOR_COOKIE, MAX_NAME, name_from_cookie
+from app.view.names import AUTHOR_COOKIE, InvalidNameError, name_from_cookie, name_from_header
 
 TOKEN_COOKIE = "slam6d_token"
 ROLE_KEY = "x-role"
@@ -91,11 +93,14 @@ def open_grant(name: str) -> Grant:
 
 
 def page_name(headers: Headers) -> str:
-    """The name typed in a page: its ``X-Author`` (REST calls, scripts) or else its name cookie (the
-    3D view's websocket, plain page loads); trimmed, at most :data:`app.view.names.MAX_NAME` characters."""
+    """The name typed in a page: its ``X-Author`` (REST calls, scripts; GuardError 422 when it is not a
+    valid name) or else its name cookie (the 3D view's websocket, plain page loads)."""
     header = headers.get("x-author")
     if header is not None and header.strip():
-        return header.strip()[:MAX_NAME]
+        try:
+            return name_from_header(header)
+        except InvalidNameError as exc:
+            raise GuardError(422, str(exc), field=("header", "X-Author")) from None
     return name_from_cookie(cookie_value(headers, AUTHOR_COOKIE))
 
 
@@ -137,11 +142,21 @@ def server_names(bind_host: str, extra: Iterable[str] = ()) -> frozenset[str]:
 
 
 class GuardError(Exception):
-    def __init__(self, status: int, message: str, authenticate: bool = False) -> None:
+    """A refusal; ``field`` names the part of the request at fault (answered like FastAPI's own 422)."""
+
+    def __init__(
+        self, status: int, message: str, authenticate: bool = False, field: tuple[str, ...] | None = None
+    ) -> None:
         self.status = status
         self.message = message
         self.authenticate = authenticate
+        self.field = field
         super().__init__(message)
+
+    def detail(self) -> str | list[dict[str, Any]]:
+        if self.field is None:
+            return self.message
+        return [{"loc": list(self.field), "msg": self.message, "type": "value_error"}]
 
 
 @dataclass(frozen=True)
@@ -175,13 +190,7 @@ class RequestGuard:
         except GuardError as exc:
             await _refuse(scope, receive, send, exc)
             return
-        if is_open(grant):
-            grant = open_grant(page_name(headers))
         scope.setdefault("state", {})["grant"] = grant
-        # every route reads the author from X-Author: it is the grant's one name, whatever the page claims
-        scope["headers"] = [(k, v) for k, v in scope["headers"] if k.lower() != b"x-author"]
-        if grant.name:
-            scope["headers"].append((b"x-author", grant.name.encode("latin-1", "replace")))
         if from_query is None or scope["type"] != "http":
             await self.app(scope, receive, send)
             return
@@ -210,7 +219,7 @@ class RequestGuard:
         if grant is None:
             if self.policy.require_token:
                 raise GuardError(401, "this server needs an access token (ask the session's owner for a link)", True)
-            grant = OPEN_GRANT
+            grant = open_grant(page_name(headers))
         return grant, (secret if from_query else None)
 
 
@@ -313,13 +322,13 @@ async def _refuse(scope: Scope, receive: Receive, send: Send, error: GuardError)
                 "headers": [(b"content-type", b"application/json")],
             }
         )
-        await send({"type": "websocket.http.response.body", "body": json.dumps({"detail": error.message}).encode()})
+        await send({"type": "websocket.http.response.body", "body": json.dumps({"detail": error.detail()}).encode()})
         return
     headers = [(b"content-type", b"application/json")]
     if error.authenticate:
         headers.append((b"www-authenticate", b'Bearer realm="slam6d workbench"'))
     await send({"type": "http.response.start", "status": error.status, "headers": headers})
-    await send({"type": "http.response.body", "body": json.dumps({"detail": error.message}).encode()})
+    await send({"type": "http.response.body", "body": json.dumps({"detail": error.detail()}).encode()})
 
 
 __all__ = [

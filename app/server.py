@@ -36,6 +36,7 @@ from app.guard import (
 from app.limits import RequestLimits
 from app.permalink import LINK_PARAMETERS, parse_link, resolve_link
 from app.resources import ResourceLimits
+from app.revision_events import RevisionEvents
 from app.revisions import REVISION_RESPONSES, RevisionHeaders, add_revision_errors, check_revision
 from app.routes import API_ROUTERS
 from app.routes.dependencies import SessionDep
@@ -107,6 +108,8 @@ def create_app(
         version="0.1.0",
     )
     app.state.workbench = workbench
+    # before the 3D views listen: a page learns of a new head no later than its 3D view shows it
+    app.state.revision_events = RevisionEvents(workbench)
     app.state.on_shutdown = [workbench.close_scheduler]
     install_error_handlers(app)
     app.add_middleware(

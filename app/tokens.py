@@ -23,6 +23,7 @@ from datetime import UTC, datetime, timedelta
 from enum import IntEnum
 from pathlib import Path
 
+from app.view.names import InvalidNameError, checked_name
 from slam6d.errors import Slam6dError
 
 TOKEN_DB = "access.sqlite"
@@ -118,7 +119,12 @@ class TokenStore:
     def issue(
         self, role: Role, session: str | None = None, expires_in: timedelta | None = None, name: str = ""
     ) -> tuple[str, Grant]:
-        """A new token: the secret (shown once, to hand over) and what it grants."""
+        """A new token: the secret (shown once, to hand over) and what it grants. ``name`` is who acts
+        with it (journal, comments, presence): TokenError when it is not a valid name."""
+        try:
+            name = checked_name(name)
+        except InvalidNameError as exc:
+            raise TokenError(f"name: {exc}") from None
         secret = secrets.token_urlsafe(_TOKEN_BYTES)
         created = _now()
         grant = Grant(

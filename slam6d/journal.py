@@ -387,6 +387,16 @@ class Journal:
         with closing(self._connect()) as conn:
             return _head_of(conn)
 
+    def head_entry(self) -> JournalEntry | None:
+        """The entry that made the current revision current - who moved the head last, how and when
+        (what a page is told the moment it happens); None before revision 0 was stored."""
+        with closing(self._connect()) as conn:
+            row = conn.execute(
+                "SELECT id, time, author, kind, parameters, head, revision FROM entries"
+                " WHERE head IS NOT NULL ORDER BY id DESC LIMIT 1"
+            ).fetchone()
+        return None if row is None else JournalEntry(row[0], row[1], row[2], row[3], json.loads(row[4]), row[5], row[6])
+
     def can_undo(self) -> bool:
         head = self.head
         found = None if head is None else self.revision(head)

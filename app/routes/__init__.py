@@ -4,6 +4,7 @@
 module              resource
 ==================  =========================================================
 ``sessions``        sessions: list, create, upload, details, journal, undo/redo
+``events``          a session's head pushed to its pages as it moves (websocket)
 ``bundles``         a session's whole history as a zip, and importing one
 ``exports``         poses per revision, pose and map downloads
 ``jobs``            background jobs: start registration/reload, poll, cancel
@@ -34,6 +35,7 @@ from app.routes import (
     comments,
     components,
     edges,
+    events,
     exports,
     guesses,
     jobs,
@@ -46,6 +48,7 @@ from app.routes import (
 
 API_ROUTERS: tuple[APIRouter, ...] = (
     sessions.router,
+    events.router,
     bundles.router,
     exports.router,
     jobs.router,

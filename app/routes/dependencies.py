@@ -10,9 +10,12 @@ from dataclasses import dataclass
 from typing import Annotated, Any
 
 from fastapi import Depends, Header, Request
+from starlette.requests import HTTPConnection
 
 from app.editing import Editor, editor_for
+from app.guard import OPEN_GRANT
 from app.jobs import Work
+from app.tokens import Grant
 from app.workbench import SessionState, Workbench
 
 
@@ -37,8 +40,27 @@ SessionDep = Annotated[SessionState, Depends(session_state)]
 # for routers and routes that need the session to exist but not its state
 REQUIRE_SESSION = Depends(session_state)
 EditorDep = Annotated[Editor, Depends(get_editor)]
+
+
+def author_name(
+    connection: HTTPConnection,
+    x_author: Annotated[
+        str | None,
+        Header(
+            alias="X-Author",
+            description="who acts, on a server without tokens (a token's holder is the token's name): "
+            "plain text, or percent-encoded UTF-8 as UTF-8''%E5%BC%A0%E4%BC%9F",
+        ),
+    ] = None,
+) -> str:
+    """Who acts: the name the request guard settled on (:mod:`app.guard`, which read and checked
+    ``X-Author``), so journal, comments, presence and ``/api/me`` show one and the same name."""
+    grant: Grant = connection.scope.get("state", {}).get("grant", OPEN_GRANT)
+    return grant.name or "anonymous"
+
+
 # who made an edit: the web pages send the name the user typed, so the journal says who did what
-Author = Annotated[str, Header(alias="X-Author", max_length=100)]
+Author = Annotated[str, Depends(author_name)]
 
 
 @dataclass(frozen=True)

@@ -1,5 +1,5 @@
 // Shared by the pages: who is acting and REST calls. One name per person: typed in the page header,
-// sent as X-Author with every REST call and mirrored into the slam6d-author cookie, which the 3D view's
+// sent as X-Author (percent-encoded UTF-8) with every REST call and mirrored into the slam6d-author cookie, which the 3D view's
 // websocket carries, so the buttons in the 3D view act under the same name.
 export function authorName() {
   return localStorage.getItem("slam6d-author") || "";
@@ -23,7 +23,8 @@ export function bindAuthorField(input, onChange = () => {}) {
 // make a browser send one without asking first.
 export async function api(path, options = {}) {
   const headers = { ...(options.headers || {}) };
-  if (authorName()) headers["X-Author"] = authorName();
+  // header values are Latin-1: the name travels percent-encoded as UTF-8 (RFC 8187), so 张伟 stays 张伟
+  if (authorName()) headers["X-Author"] = `UTF-8''${encodeURIComponent(authorName())}`;
   const method = (options.method || "GET").toUpperCase();
   let body = options.body;
   if (method === "POST" && body === undefined) body = "{}";

@@ -6,6 +6,13 @@ proxy. viser numbers its clients but shows the handshake to nobody, so the proxy
 arriving browser's name and connects it upstream before the next one may: the next client viser
 reports is that browser. A page whose name changes reloads its 3D view, which arrives again under
 the new name. Names key the journal's author (and anything else that asks who a client is).
+
+**Any script.** HTTP header values are Latin-1, so a page sends its name in ``X-Author`` as an RFC 8187
+extended value, ``UTF-8''`` followed by the percent-encoded UTF-8 bytes (``UTF-8''%E5%BC%A0%E4%BC%9F``
+for 张伟); a plain value is read as it comes (a script's ASCII or Latin-1 name, or raw UTF-8 bytes as
+``curl -H`` sends them). Every name - header, cookie or a token's - passes :func:`checked_name`: at
+most :data:`MAX_NAME` characters, no control or text-direction characters (which would garble or
+disguise the journal, comment and presence lines it is shown in).
 """
 
 from __future__ import annotations
@@ -13,7 +20,9 @@ from __future__ import annotations
 import asyncio
 import threading
 import time
+import unicodedata
 from collections.abc import Awaitable, Callable
+from contextlib import suppress
 from typing import TypeVar
 from urllib.parse import unquote
 
@@ -24,9 +33,51 @@ MAX_NAME = 100
 _ARRIVAL_WAIT = 5.0  # s: how long one arriving browser may hold the door before the next one goes ahead
 
 
+EXTENDED_VALUE_PREFIX = "utf-8''"  # RFC 8187: charset, empty language, then percent-encoded bytes
+# characters that reorder or hide the text around them: a name must not disguise the line it is shown in
+_DIRECTION_MARKS = frozenset("\u061c\u200e\u200f\u202a\u202b\u202c\u202d\u202e\u2066\u2067\u2068\u2069")
+
+
+class InvalidNameError(ValueError):
+    """A name that cannot be shown as who did something (the message says why, without the field)."""
+
+
+def checked_name(name: str) -> str:
+    """``name`` trimmed; InvalidNameError when it is longer than :data:`MAX_NAME` characters or holds a
+    control, surrogate or text-direction character."""
+    text = name.strip()
+    if len(text) > MAX_NAME:
+        raise InvalidNameError(f"a name is at most {MAX_NAME} characters, this one has {len(text)}")
+    for char in text:
+        if unicodedata.category(char) in ("Cc", "Cs") or char in _DIRECTION_MARKS:
+            raise InvalidNameError(f"a name may not contain the control character U+{ord(char):04X}")
+    return text
+
+
+def name_from_header(raw: str) -> str:
+    """The name in an ``X-Author`` value as the server read it (Latin-1): an RFC 8187 extended value
+    (``UTF-8''%C5%81ukasz``), raw UTF-8 bytes, or plain Latin-1 text; checked by :func:`checked_name`."""
+    text = raw.strip()
+    if text[: len(EXTENDED_VALUE_PREFIX)].lower() == EXTENDED_VALUE_PREFIX:
+        try:
+            text = unquote(text[len(EXTENDED_VALUE_PREFIX) :], encoding="utf-8", errors="strict")
+        except UnicodeDecodeError:
+            raise InvalidNameError("the name after UTF-8'' is not percent-encoded UTF-8") from None
+    elif not text.isascii():
+        # raw UTF-8 bytes (what curl -H sends) arrive as Latin-1 characters: read them as UTF-8, unless
+        # they are not UTF-8 (Latin-1 text after all)
+        with suppress(UnicodeError):
+            text = text.encode("latin-1").decode("utf-8")
+    return checked_name(text)
+
+
 def name_from_cookie(value: str | None) -> str:
-    """The name a page stored in its cookie (URI-encoded by the page), trimmed; "" when there is none."""
-    return unquote(value or "").strip()[:MAX_NAME]
+    """The name a page stored in its cookie (URI-encoded by the page); "" when there is none or it is not
+    a valid name (a websocket handshake cannot be answered with why: the page's REST calls say it)."""
+    try:
+        return checked_name(unquote(value or "", encoding="utf-8", errors="strict"))
+    except (InvalidNameError, UnicodeDecodeError):
+        return ""
 
 
 class BrowserNames:
