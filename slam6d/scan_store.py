@@ -88,6 +88,7 @@ class ScanStore:
         self.resident_bytes = 0
         self.peak_bytes = 0
         self.loads = 0  # reads from disk (misses of the cache)
+        self.read_bytes = 0  # bytes of points read from disk, by points() and prefix() alike
         self._lock = threading.Lock()  # the pipeline reduces scans on two threads
 
     def __len__(self) -> int:
@@ -157,6 +158,7 @@ class ScanStore:
         self.resident_bytes += points.nbytes
         self.peak_bytes = max(self.peak_bytes, self.resident_bytes)
         self.loads += 1
+        self.read_bytes += raw.nbytes
         return points
 
     def prefix(self, k: int, count: int) -> NDArray[np.float32]:
@@ -168,6 +170,8 @@ class ScanStore:
         raw = np.fromfile(
             self.directory / POINTS_FILE, dtype=np.float32, count=count * 3, offset=int(self.offsets[k]) * 12
         )
+        with self._lock:
+            self.read_bytes += raw.nbytes
         return raw.reshape(-1, 3)
 
     @staticmethod
