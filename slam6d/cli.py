@@ -177,10 +177,11 @@ def render(
     A session's map is streamed from the level-of-detail store in its cache: only the points
     drawn are read. Frames are encoded by ffmpeg while the next ones render."""
     import resource
+    import threading
 
     from slam6d.camera_path import load_camera_path, save_camera_path, trajectory_path
     from slam6d.point_scene import load_render_input
-    from slam6d.render import RenderOptions, render_fly_through
+    from slam6d.render import RenderOptions, prepare_kernels, render_fly_through
     from slam6d.video import EncoderOptions
 
     try:
@@ -192,8 +193,11 @@ def render(
         encoder = EncoderOptions(preset=preset, crf=crf)
     except ValueError as exc:
         raise typer.BadParameter(str(exc)) from None
+    warm_up = threading.Thread(target=prepare_kernels, name="kernel-warm-up", daemon=True)
+    warm_up.start()  # overlaps numba's start-up with reading the map
     with progress_bar("reading scans") as update:
         scene, session_path = load_render_input(source, fmt, poses, max_points, update, color == "intensity")
+    warm_up.join()
     camera_path = load_camera_path(path) if path else session_path
     if camera_path is None:
         camera_path = trajectory_path(scene.scan_poses, height=height, speed=speed)

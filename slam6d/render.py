@@ -404,6 +404,19 @@ class Renderer:
         return image
 
 
+def prepare_kernels() -> None:
+    """Load the renderer's compiled kernels by drawing one tiny frame.
+
+    A fresh process spends about a second (several under load) in numba's first dispatch: its
+    typing registries and the kernels' on-disk cache. That does not depend on the map, so
+    ``slam6d render`` runs this on a thread while the map is read instead of after it.
+    """
+    from slam6d.point_scene import scene_from_points
+
+    tiny = Renderer(scene_from_points(np.array([[0.0, 0.0, 2.0], [0.1, 0.0, 2.5]])), 8, 8)
+    tiny.render(tiny.camera(np.eye(4)))
+
+
 @dataclass
 class RenderResult:
     """What a render wrote, and where its time went: ``seconds`` from the first frame to the file in
