@@ -159,16 +159,28 @@ def cli_render(label: str, args: list[str], frames: int, preset: str) -> None:
     if done.returncode != 0:
         raise SystemExit(f"{label}: slam6d render failed:\n{done.stderr[-2000:]}")
     cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
-    streaming = re.search(r"\(([0-9.]+) frames/s rendered and encoded", done.stdout)
-    memory = re.search(r"peak memory (\d+) MB", done.stdout)
-    read = re.search(r"([0-9,]+) of ([0-9,]+) points, (\d+) scans(?:, (\d+) MB read)?", done.stderr)
-    points = f"{read.group(1)} of {read.group(2)} points" if read else "?"
+    patterns = {
+        "streaming": r"\(([0-9.]+) frames/s rendered and encoded",
+        "start_up": r"start-up ([0-9.]+) CPU s",
+        "memory": r"peak memory (\d+) MB",
+        "points": r"([0-9,]+ of [0-9,]+ points)",
+        "read": r"\d+ scans(, \d+ MB read|)",
+    }
+    text: dict[str, str] = {}
+    for key, pattern in patterns.items():
+        match = re.search(pattern, done.stdout + done.stderr)
+        if match is None:
+            raise SystemExit(f"{label}: no {key} in the output of slam6d render:\n{done.stdout}\n{done.stderr[-2000:]}")
+        text[key] = match.group(1)
+    start_up = float(text["start_up"])
+    per_frame = (cpu - start_up) / frames * 1e3  # the render process's threads and ffmpeg's
+    # what 2 idle cores would do: start-up runs mostly on one core, frames on both
+    idle = frames / (start_up + frames * per_frame / 2000.0)
     print(
-        f"{label:28s} 1280x720 {points}{f', {read.group(4)} MB read' if read and read.group(4) else ''}:"
-        f" {frames / wall:5.1f} fps end to end ({frames} frames in {wall:.1f} s with start-up),"
-        f" {streaming.group(1) if streaming else '?'} fps rendering + encoding;"
-        f" {cpu / frames * 1e3:.0f} CPU ms/frame in all -> {2000.0 / (cpu / frames * 1e3):.0f} fps on 2 idle cores;"
-        f" peak memory {memory.group(1) if memory else '?'} MB; x264 {preset}, load {os.getloadavg()[0]:.1f}"
+        f"{label:28s} 1280x720 {text['points']}{text['read']}: {frames / wall:5.1f} fps end to end ({frames} frames in"
+        f" {wall:.1f} s with start-up), {text['streaming']} fps rendering + encoding; CPU: start-up {start_up:.1f} s,"
+        f" {per_frame:.0f} ms/frame with x264 {preset} -> {2000.0 / per_frame:.0f} fps streaming,"
+        f" {idle:.0f} fps end to end on 2 idle cores; peak memory {text['memory']} MB; load {os.getloadavg()[0]:.1f}"
     )
 
 

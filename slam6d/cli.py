@@ -178,6 +178,7 @@ def render(
     drawn are read. Frames are encoded by ffmpeg while the next ones render."""
     import resource
     import threading
+    import time
 
     from slam6d.camera_path import load_camera_path, save_camera_path, trajectory_path
     from slam6d.point_scene import load_render_input
@@ -205,6 +206,7 @@ def render(
         save_camera_path(save_path, camera_path)
     streamed = f", {scene.read_bytes / 1e6:.0f} MB read from the store" if scene.read_bytes else ""
     err.print(f"{len(scene):,} of {scene.total_points:,} points, {len(scene.scan_poses)} scans{streamed}")
+    start_up_cpu = time.process_time()  # this process's CPU so far (all threads): imports, reading the map
     with progress_bar("rendering") as update:
         result = render_fly_through(
             scene, out, width, height_px, fps, frames, camera_path, options, progress=update, encoder=encoder
@@ -213,7 +215,8 @@ def render(
     typer.echo(
         f"{result.out}: {result.frames} frames {width}x{height_px} at {fps:g} fps "
         f"({result.frames_per_second:.1f} frames/s rendered and encoded; drawing {result.render_seconds:.1f} s, "
-        f"waiting for the encoder {result.encoder_wait_seconds:.1f} s; peak memory {peak_mb:.0f} MB)"
+        f"waiting for the encoder {result.encoder_wait_seconds:.1f} s; start-up {start_up_cpu:.1f} CPU s; "
+        f"peak memory {peak_mb:.0f} MB)"
     )
 
 
