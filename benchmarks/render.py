@@ -4,6 +4,7 @@
     .venv/bin/python benchmarks/render.py --balm     # also the real BALM hall map (needs ../shared/data)
     .venv/bin/python benchmarks/render.py --video    # also end-to-end MP4 encoding
     .venv/bin/python benchmarks/render.py --campus /tmp/campus1000   # `slam6d render` on a 1,000-scan session
+    .venv/bin/python benchmarks/render.py --encoders # x264 presets: CPU, size, PSNR on rendered frames
 
 Frames are rendered along a camera path through the scene, so every frame sees a different mix of
 near (large splat) and far points. The machine may be shared: each figure is the best of several
@@ -146,6 +147,39 @@ def bench_video(scene: PointScene, width: int, height: int, frames: int, preset:
     )
 
 
+def bench_encoders(scene: PointScene, frames: int) -> None:
+    """x264 presets on the same rendered frames: ffmpeg's CPU per frame (its RGB -> YUV conversion
+    included), the file size and the PSNR of the decoded frames against the rendered ones."""
+    import imageio_ffmpeg
+
+    renderer = Renderer(scene, 1280, 720, RenderOptions())
+    images = [renderer.render(renderer.camera(p, f)).copy() for p, f in hall_path(scene).sample(frames=frames)]
+    with tempfile.TemporaryDirectory() as tmp:
+        for preset in ("ultrafast", "superfast", "veryfast"):
+            out = Path(tmp) / f"{preset}.mp4"
+            before = resource.getrusage(resource.RUSAGE_CHILDREN)
+            command = [imageio_ffmpeg.get_ffmpeg_exe(), "-loglevel", "error", "-f", "rawvideo", "-pix_fmt", "rgb24"]
+            command += ["-s", "1280x720", "-r", "30", "-i", "-", "-c:v", "libx264", "-preset", preset, "-crf", "23"]
+            encoder = subprocess.Popen([*command, "-pix_fmt", "yuv420p", str(out)], stdin=subprocess.PIPE)
+            assert encoder.stdin is not None
+            for image in images:
+                encoder.stdin.write(image.data)  # the array itself, not a copy
+            encoder.stdin.close()
+            encoder.wait()
+            after = resource.getrusage(resource.RUSAGE_CHILDREN)
+            cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+            reader = imageio_ffmpeg.read_frames(str(out))
+            next(reader)
+            errors = [
+                np.mean((np.frombuffer(b, np.uint8).reshape(image.shape).astype(np.float64) - image) ** 2)
+                for b, image in zip(reader, images, strict=True)
+            ]
+            print(
+                f"{'x264 ' + preset + ', crf 23':28s} 1280x720  {cpu / frames * 1e3:5.1f} CPU ms/frame,"
+                f" {out.stat().st_size / frames / 1e3:5.0f} kB/frame, PSNR {10 * np.log10(255**2 / np.mean(errors)):.1f} dB"
+            )
+
+
 def cli_render(label: str, args: list[str], frames: int, preset: str) -> None:
     """`slam6d render ARGS` as its own process, 1280x720, timed from launch to the MP4 in place."""
     with tempfile.TemporaryDirectory() as tmp:
@@ -205,6 +239,7 @@ def main() -> None:
     parser.add_argument("--campus", type=Path, help="scans of a simulated campus: `slam6d render` on a session of them")
     parser.add_argument("--video-frames", type=int, default=300, help="frames of each end-to-end MP4 (300: 10 s)")
     parser.add_argument("--preset", default="ultrafast", help="x264 preset of the MP4 runs")
+    parser.add_argument("--encoders", action="store_true", help="compare x264 presets on the same rendered frames")
     args = parser.parse_args()
     print(f"load average {os.getloadavg()[0]:.2f} (1 min) at the start")
     print(f"numba {numba.__version__}, {numba.get_num_threads()} threads, threading layer ", end="")
@@ -227,6 +262,8 @@ def main() -> None:
         if args.balm:
             balm = [str(data / "velodyne_style_bin"), "--poses", str(data / "poses_subset_kitti3x4.txt")]
             cli_render("BALM hall: slam6d render", balm, args.video_frames, args.preset)
+    if args.encoders:
+        bench_encoders(hall2m, args.frames)
     if args.campus:
         with tempfile.TemporaryDirectory() as tmp:
             session = campus_session(args.campus, Path(tmp) / "campus")
