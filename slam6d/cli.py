@@ -176,13 +176,13 @@ def render(
 
     A session's map is streamed from the level-of-detail store in its cache: only the points
     drawn are read. Frames are encoded by ffmpeg while the next ones render."""
-    import resource
     import threading
     import time
 
     from slam6d.camera_path import load_camera_path, save_camera_path, trajectory_path
     from slam6d.point_scene import load_render_input
     from slam6d.render import RenderOptions, prepare_kernels, render_fly_through
+    from slam6d.scan_store import peak_memory_bytes
     from slam6d.video import EncoderOptions
 
     try:
@@ -211,7 +211,7 @@ def render(
         result = render_fly_through(
             scene, out, width, height_px, fps, frames, camera_path, options, progress=update, encoder=encoder
         )
-    peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # Linux reports KiB
+    peak_mb = peak_memory_bytes() / 1e6
     typer.echo(
         f"{result.out}: {result.frames} frames {width}x{height_px} at {fps:g} fps "
         f"({result.frames_per_second:.1f} frames/s rendered and encoded; drawing {result.render_seconds:.1f} s, "
