@@ -28,9 +28,10 @@ class EncoderOptions:
     """How H.264 is written: ``preset`` buys speed with file size, ``crf`` sets the quality (0-51, lower is better).
 
     The default is x264's ``ultrafast``: measured on rendered point clouds at 1280x720 (noisy,
-    high-detail frames) it costs 13 CPU ms per frame against 50 for ``veryfast``, at the same
-    PSNR and a third larger file. On two cores that is the difference between the encoder keeping
-    up with the renderer (>= 30 fps end to end) and halving its rate (see docs/benchmarks.md).
+    high-detail frames) it costs 13-16 CPU ms per frame against 50-55 for ``veryfast``, at the
+    same PSNR and a quarter to a third larger file. On two cores that is the difference between
+    the encoder keeping up with the renderer (>= 30 fps end to end) and taking more of the CPU than
+    the renderer does (``benchmarks/render.py --encoders``; docs/scale.md, "Fly-throughs").
     """
 
     preset: str = "ultrafast"
