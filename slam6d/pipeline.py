@@ -77,7 +77,7 @@ from slam6d.pair import MIN_FITNESS, Outcome, better_fit, coarse_to_fine, is_poo
 from slam6d.relax import Cancelled, RelaxationConfig, RelaxationResult, ScanModels
 from slam6d.relaxation_methods import models_icp_config, relax_poses
 from slam6d.scan import ScanSequence
-from slam6d.scan_store import ScanStore
+from slam6d.scan_store import ScanStore, peak_memory_bytes
 from slam6d.scheduler import Scheduler
 from slam6d.trace import to_jsonable, write_trace
 
@@ -800,15 +800,6 @@ def reduce_stored_scan(directory: str, index: int, voxel_size: float) -> np.ndar
     """:func:`reduce_scan` of scan ``index`` of the store at ``directory``, read where this runs
     (a cluster worker reads the store itself instead of receiving the full cloud)."""
     return reduce_scan(ScanStore(directory, budget=2**62).points(index), voxel_size)
-
-
-def peak_memory_bytes() -> int:
-    """The process's peak resident memory so far (Linux reports kilobytes, macOS bytes)."""
-    import resource
-    import sys
-
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    return int(peak if sys.platform == "darwin" else peak * 1024)
 
 
 def write_results(pipeline: Pipeline, out_dir: Path | str, extra: dict[str, Any] | None = None) -> dict[str, Path]:

@@ -23,6 +23,7 @@ from slam6d.scan_store import ScanStore
 
 if TYPE_CHECKING:
     from slam6d.camera_path import CameraPath
+    from slam6d.scan_levels import ScanLevels
 
 STREAM_BUDGET = 256 * 10**6  # bytes of full clouds held at once while a stored map is thinned for rendering
 
@@ -42,6 +43,7 @@ class PointScene:
     scan_poses: list[Matrix] = field(default_factory=list)
     scan_names: list[str] = field(default_factory=list)
     total_points: int = 0  # before downsampling
+    read_bytes: int = 0  # of scan points read from disk to build a streamed scene (0: built in memory)
 
     def __len__(self) -> int:
         return int(self.points.shape[0])
@@ -114,13 +116,13 @@ def scene_from_sequence(sequence: ScanSequence, max_points: int | None = 2_000_0
     Thinning is a random sample with the same fraction for every scan, so no scan vanishes and the
     result does not depend on the scan order. Scans without intensity get NaN there (shown grey).
     """
+    rng = np.random.default_rng(seed)
     return _thinned_scene(
         [len(scan) for scan in sequence],
-        lambda k: (sequence[k].world_points(), sequence[k].intensity),
+        lambda k, fraction: _random_share(sequence[k].world_points(), sequence[k].intensity, fraction, rng),
         [scan.pose.copy() for scan in sequence],
         [scan.name for scan in sequence],
         max_points,
-        seed,
         any(scan.intensity is not None for scan in sequence),
     )
 
@@ -131,42 +133,76 @@ def scene_from_store(
     """:func:`scene_from_sequence` streamed from a scan store: one scan read at a time (through the
     store's memory budget) and only its thinned share kept, so a map of any size renders within
     the budget plus ``max_points``. ``poses`` (canonical frame) default to the store's own."""
-    placed = list(store.poses) if poses is None else [np.asarray(p, dtype=np.float64) for p in poses]
-    if len(placed) != len(store):
-        raise Slam6dError(f"{store.directory}: {len(placed)} poses for {len(store)} stored scans")
-    return _thinned_scene(
+    placed = _poses_for(store, poses)
+    rng = np.random.default_rng(seed)
+    before = store.read_bytes
+    scene = _thinned_scene(
         [int(c) for c in store.counts],
-        lambda k: (transform_points(placed[k], store.points(k)), None),
+        lambda k, fraction: _random_share(transform_points(placed[k], store.points(k)), None, fraction, rng),
         placed,
         list(store.names),
         max_points,
-        seed,
         False,
     )
+    scene.read_bytes = store.read_bytes - before
+    return scene
+
+
+def scene_from_levels(
+    levels: ScanLevels, poses: Sequence[Matrix] | None = None, max_points: int | None = 2_000_000
+) -> PointScene:
+    """The map read from a level-of-detail store (:mod:`slam6d.scan_levels`): each scan's share of
+    ``max_points`` is a *prefix* of its progressively ordered points, an even spatial sample read
+    with one file read. Only the points kept are ever read, so a 1,000-scan session costs
+    ``max_points`` of reading and memory however large it is; ``poses`` as in :func:`scene_from_store`."""
+    store = levels.store
+    placed = _poses_for(store, poses)
+
+    def prefix(k: int, fraction: float) -> tuple[NDArray[np.float64], None]:
+        keep = int(store.counts[k]) if fraction >= 1.0 else round(float(store.counts[k]) * fraction)
+        return transform_points(placed[k], store.prefix(k, keep).astype(np.float64)), None
+
+    before = store.read_bytes
+    scene = _thinned_scene([int(c) for c in store.counts], prefix, placed, list(store.names), max_points, False)
+    scene.read_bytes = store.read_bytes - before
+    return scene
+
+
+def _poses_for(store: ScanStore, poses: Sequence[Matrix] | None) -> list[Matrix]:
+    placed = list(store.poses) if poses is None else [np.asarray(p, dtype=np.float64) for p in poses]
+    if len(placed) != len(store):
+        raise Slam6dError(f"{store.directory}: {len(placed)} poses for {len(store)} stored scans")
+    return placed
+
+
+def _random_share(
+    world: NDArray[np.float64], intensity: NDArray[np.float32] | None, fraction: float, rng: np.random.Generator
+) -> tuple[NDArray[np.float64], NDArray[np.float32] | None]:
+    """A random ``fraction`` of one scan's points (all of them at 1), the same draw for points and intensity."""
+    if fraction >= 1.0:
+        return world, intensity
+    keep = rng.random(len(world)) < fraction
+    return world[keep], None if intensity is None else intensity[keep]
 
 
 def _thinned_scene(
     sizes: Sequence[int],
-    load: Callable[[int], tuple[NDArray[np.float64], NDArray[np.float32] | None]],
+    load: Callable[[int, float], tuple[NDArray[np.float64], NDArray[np.float32] | None]],
     poses: list[Matrix],
     names: list[str],
     max_points: int | None,
-    seed: int,
     any_intensity: bool,
 ) -> PointScene:
-    """Each scan's world points (``load(k)``, asked once per scan, in order) thinned by one fraction."""
+    """Each scan's world points thinned by one fraction (``load(k, fraction)``, asked once per scan, in order)."""
     total = int(sum(sizes))
     fraction = 1.0 if not max_points or total <= max_points else max_points / total
-    rng = np.random.default_rng(seed)
     chunks, indices, intensities = [], [], []
-    for i, size in enumerate(sizes):
-        keep = slice(None) if fraction >= 1.0 else rng.random(size) < fraction
-        world, intensity = load(i)
-        pts = world[keep]
+    for i in range(len(sizes)):
+        pts, intensity = load(i, fraction)
         chunks.append(pts)
         indices.append(np.full(len(pts), i, dtype=np.int32))
         if any_intensity:
-            values = intensity[keep] if intensity is not None else np.full(len(pts), np.nan, np.float32)
+            values = intensity if intensity is not None else np.full(len(pts), np.nan, np.float32)
             intensities.append(np.asarray(values, dtype=np.float32))
     points = np.concatenate(chunks) if chunks else np.zeros((0, 3))
     return scene_from_points(
@@ -185,11 +221,14 @@ def load_render_input(
     poses_file: Path | None = None,
     max_points: int | None = 2_000_000,
     progress: ProgressFn | None = None,
+    with_intensity: bool = False,
 ) -> tuple[PointScene, CameraPath | None]:
     """Points with their latest poses from a session folder or a scan directory/file, plus any saved path.
 
     A folder holding ``session.toml`` is opened as a workbench session (its latest registration and
-    its saved camera path, if any); a scan store (``slam6d run --memory-budget``'s ``OUT/scan_store``,
+    its saved camera path, if any), its points streamed from the level store in its cache
+    (:func:`scene_from_levels`; the store keeps no intensity, so ``with_intensity`` reads the parsed
+    scans instead); a scan store (``slam6d run --memory-budget``'s ``OUT/scan_store``,
     with ``poses_file`` its ``poses_kitti.txt``) is streamed (:func:`scene_from_store`); anything else is read with :func:`slam6d.io.read_sequence`.
     """
     source = Path(source)
@@ -208,8 +247,14 @@ def load_render_input(
         except ModuleNotFoundError as exc:  # pragma: no cover - only while sessions are not installed
             raise Slam6dError(f"{source}: is a session folder, but this installation cannot open sessions") from exc
         session = Session.open(source)
-        sequence = session.load_sequence(progress)
         camera_path = _session_camera_path(session)
+        if not with_intensity:  # streamed from the session's level store: never the whole session in memory
+            from slam6d.scan_levels import session_levels
+
+            # built (once, from the parsed scans) only when the cache has none for the scans as they are
+            levels = session_levels(session, lambda: session.load_sequence(progress).scans)
+            return scene_from_levels(levels, session.poses(), max_points), camera_path
+        sequence = session.load_sequence(progress)
     else:
         from slam6d.io import read_sequence
 

@@ -34,7 +34,7 @@ from numpy.typing import NDArray
 from slam6d.errors import Cancelled, Slam6dError
 from slam6d.geometry import Matrix, invert
 from slam6d.point_scene import COLOR_MODES, PointScene, ProgressFn, point_colors
-from slam6d.video import FrameSink
+from slam6d.video import EncoderOptions, FrameSink
 
 if TYPE_CHECKING:
     from slam6d.camera_path import CameraPath
@@ -404,8 +404,25 @@ class Renderer:
         return image
 
 
+def prepare_kernels() -> None:
+    """Load the renderer's compiled kernels by drawing one tiny frame.
+
+    A fresh process spends about a second (several under load) in numba's first dispatch: its
+    typing registries and the kernels' on-disk cache. That does not depend on the map, so
+    ``slam6d render`` runs this on a thread while the map is read instead of after it.
+    """
+    from slam6d.point_scene import scene_from_points
+
+    tiny = Renderer(scene_from_points(np.array([[0.0, 0.0, 2.0], [0.1, 0.0, 2.5]])), 8, 8)
+    tiny.render(tiny.camera(np.eye(4)))
+
+
 @dataclass
 class RenderResult:
+    """What a render wrote, and where its time went: ``seconds`` from the first frame to the file in
+    place, of which ``render_seconds`` drawing frames and ``encoder_wait_seconds`` waiting for the
+    encoder to free a buffer (zero when encoding keeps up with rendering)."""
+
     out: Path
     frames: int
     width: int
@@ -413,6 +430,8 @@ class RenderResult:
     fps: float
     seconds: float
     points: int
+    render_seconds: float = 0.0
+    encoder_wait_seconds: float = 0.0
 
     @property
     def frames_per_second(self) -> float:
@@ -427,20 +446,28 @@ def render_frames(
     total: int | None = None,
     progress: ProgressFn | None = None,
     cancel: CancelFn | None = None,
+    encoder: EncoderOptions | None = None,
 ) -> RenderResult:
-    """Render each camera to ``out`` (MP4 or PNG folder); ``cancel`` is checked before every frame."""
+    """Render each camera to ``out`` (MP4 or PNG folder); ``cancel`` is checked before every frame.
+
+    Each frame is drawn straight into a buffer the sink lends (:meth:`FrameSink.buffer`) and
+    encoded on the sink's own thread and ffmpeg's while the next one renders."""
     import time
 
     if fps <= 0:
         raise ValueError(f"fps must be positive, got {fps}")
-    sink = FrameSink(out, renderer.width, renderer.height, fps)
+    sink = FrameSink(out, renderer.width, renderer.height, fps, encoder)
     start = time.perf_counter()
-    image = np.empty((renderer.height, renderer.width, 3), dtype=np.uint8)
+    drawing = 0.0
     try:
         for camera in cameras:
             if cancel is not None and cancel():
                 raise RenderCancelledError(f"{out}: render cancelled after {sink.count} frame(s)")
-            sink.write(renderer.render(camera, image))
+            image = sink.buffer()
+            began = time.perf_counter()
+            renderer.render(camera, image)
+            drawing += time.perf_counter() - began
+            sink.write(image)
             if progress is not None:
                 progress(sink.count, total or sink.count)
         if sink.count == 0:
@@ -450,7 +477,15 @@ def render_frames(
         sink.discard()
         raise
     return RenderResult(
-        path, sink.count, renderer.width, renderer.height, fps, time.perf_counter() - start, len(renderer.scene)
+        path,
+        sink.count,
+        renderer.width,
+        renderer.height,
+        fps,
+        time.perf_counter() - start,
+        len(renderer.scene),
+        drawing,
+        sink.wait_seconds,
     )
 
 
@@ -465,6 +500,7 @@ def render_fly_through(
     options: RenderOptions | None = None,
     progress: ProgressFn | None = None,
     cancel: CancelFn | None = None,
+    encoder: EncoderOptions | None = None,
 ) -> RenderResult:
     """The one-call fly-through: the given path, or by default one following the scan trajectory."""
     from slam6d.camera_path import trajectory_path
@@ -474,4 +510,4 @@ def render_fly_through(
     samples = path.sample(frames=frames, fps=fps)
     renderer = Renderer(scene, width, height, options)
     cameras = (renderer.camera(pose, fov) for pose, fov in samples)
-    return render_frames(renderer, cameras, out, fps, len(samples), progress, cancel)
+    return render_frames(renderer, cameras, out, fps, len(samples), progress, cancel, encoder)

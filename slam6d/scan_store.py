@@ -41,7 +41,7 @@ _UNITS = {"": 1, "B": 1, "K": 10**3, "KB": 10**3, "M": 10**6, "MB": 10**6, "G": 
 _INDEX_KEYS = ("counts", "poses", "has_pose", "names", "convention")
 _UNITS |= {"KIB": 2**10, "MIB": 2**20, "GIB": 2**30, "TB": 10**12}
 
-__all__ = ["ScanStore", "ScanStoreError", "parse_bytes", "store_sequence", "store_source"]
+__all__ = ["ScanStore", "ScanStoreError", "parse_bytes", "peak_memory_bytes", "store_sequence", "store_source"]
 
 
 class ScanStoreError(Slam6dError):
@@ -58,6 +58,28 @@ def parse_bytes(text: str) -> int:
     if value <= 0:
         raise ValueError(f"a memory size must be positive, got {text!r}")
     return value
+
+
+def peak_memory_bytes() -> int:
+    """The process's peak resident memory so far.
+
+    On Linux from ``/proc/self/status``'s ``VmHWM``: ``ru_maxrss`` also keeps the peak of the
+    process that started this one (Linux carries the parent's high-water mark across fork and
+    exec), so a command launched from a big benchmark process reported the benchmark's memory.
+    Elsewhere ``ru_maxrss`` (macOS reports bytes, others kilobytes).
+    """
+    import resource
+    import sys
+
+    try:
+        with open("/proc/self/status") as status:
+            for line in status:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) * 1024  # "VmHWM:   452168 kB"
+    except OSError:
+        pass
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return int(peak if sys.platform == "darwin" else peak * 1024)
 
 
 class ScanStore:
@@ -88,6 +110,7 @@ class ScanStore:
         self.resident_bytes = 0
         self.peak_bytes = 0
         self.loads = 0  # reads from disk (misses of the cache)
+        self.read_bytes = 0  # bytes of points read from disk, by points() and prefix() alike
         self._lock = threading.Lock()  # the pipeline reduces scans on two threads
 
     def __len__(self) -> int:
@@ -157,6 +180,7 @@ class ScanStore:
         self.resident_bytes += points.nbytes
         self.peak_bytes = max(self.peak_bytes, self.resident_bytes)
         self.loads += 1
+        self.read_bytes += raw.nbytes
         return points
 
     def prefix(self, k: int, count: int) -> NDArray[np.float32]:
@@ -168,6 +192,8 @@ class ScanStore:
         raw = np.fromfile(
             self.directory / POINTS_FILE, dtype=np.float32, count=count * 3, offset=int(self.offsets[k]) * 12
         )
+        with self._lock:
+            self.read_bytes += raw.nbytes
         return raw.reshape(-1, 3)
 
     @staticmethod

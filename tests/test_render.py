@@ -366,3 +366,89 @@ def test_a_stored_map_streams_into_the_scene_the_sequence_gives(tmp_path: Path) 
     assert store.peak_bytes <= store.budget and store.loads == 2
     with pytest.raises(Slam6dError, match="1 poses for 2 stored scans"):
         scene_from_store(store, [np.eye(4)])
+
+
+def test_lent_buffers_reach_the_encoder_uncopied_and_in_order(tmp_path: Path) -> None:
+    """Frames drawn into the sink's own buffers are encoded as they are, in order, from a fixed pool
+    (no allocation or copy per frame), however far the renderer runs ahead of the encoder."""
+    from slam6d.video import FrameSink
+
+    sink = FrameSink(tmp_path / "grey.mp4", 64, 48, fps=10)
+    levels = [(53 * k) % 250 for k in range(30)]
+    lent = set()
+    for level in levels:
+        image = sink.buffer()
+        lent.add(id(image))
+        image[:] = level
+        sink.write(image)
+    sink.commit()
+    assert len(lent) <= FrameSink.QUEUED + 1
+    reader = imageio_ffmpeg.read_frames(str(tmp_path / "grey.mp4"))
+    next(reader)
+    read = [float(np.frombuffer(frame, dtype=np.uint8).mean()) for frame in reader]
+    np.testing.assert_allclose(read, levels, atol=3)
+
+
+def test_written_frames_are_the_renderers_frames(tmp_path: Path) -> None:
+    """The frames a render writes are exactly what the renderer draws for each camera (PNG: lossless)."""
+    from PIL import Image
+
+    scene = scene_from_sequence(_two_scan_sequence(3_000))
+    renderer = Renderer(scene, 64, 48)
+    cameras = [renderer.camera(look_at((0, 0, 1), (10, k * 0.3 - 1.5, 0))) for k in range(8)]
+    render_frames(renderer, cameras, tmp_path / "frames")
+    written = [np.asarray(Image.open(p)) for p in sorted((tmp_path / "frames").iterdir())]
+    assert len(written) == len(cameras)
+    for image, camera in zip(written, cameras, strict=True):
+        np.testing.assert_array_equal(image, renderer.render(camera))
+
+
+def test_encoder_options_are_checked_and_named() -> None:
+    from slam6d.cli import app
+    from slam6d.video import EncoderOptions
+
+    with pytest.raises(ValueError, match=r"unknown x264 preset 'quick'.*ultrafast"):
+        EncoderOptions(preset="quick")
+    with pytest.raises(ValueError, match=r"crf must be within 0\.\.51"):
+        EncoderOptions(crf=60)
+    bad = CliRunner().invoke(app, ["render", "nowhere", "--preset", "quick"])
+    assert bad.exit_code != 0 and "ultrafast" in bad.output
+
+
+def test_a_session_renders_streamed_from_its_level_store(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """`slam6d render SESSION` reads only the points it draws from the session's cache: the first time
+    builds the level store, every later render reads a prefix of each scan and no full scan; the frame
+    shows the same map as the in-memory sequence's."""
+    from slam6d.session import Session
+
+    _write_uos_dir(tmp_path / "scans")
+    session = Session.create(tmp_path / "session", "Two", tmp_path / "scans")
+    first, _ = load_render_input(session.folder, max_points=2_000)
+    sequence = session.load_sequence()
+
+    def no_full_read(*args: object, **kwargs: object) -> None:
+        raise AssertionError("the streamed render read the whole session")
+
+    monkeypatch.setattr(Session, "load_sequence", no_full_read)
+    scene, _ = load_render_input(session.folder, max_points=2_000)
+    assert len(scene) == len(first) == 2_000 and scene.total_points == 6_000
+    assert scene.read_bytes == len(scene) * 3 * 4  # float32 xyz of the points drawn, nothing more
+    np.testing.assert_array_equal(np.bincount(scene.scan_index), [1_000, 1_000])
+    np.testing.assert_allclose(scene.scan_positions, [[0, 0, 0], [2, 0, 0]], atol=1e-6)
+    # an even spatial sample: the streamed map fills the same box as the whole one
+    whole = scene_from_sequence(sequence, max_points=None)
+    lo, hi = whole.bounds()
+    got_lo, got_hi = scene.bounds()
+    np.testing.assert_allclose(got_lo, lo, atol=0.5)
+    np.testing.assert_allclose(got_hi, hi, atol=0.5)
+    # and looks the same from a camera as the random sample of the in-memory path
+    camera = Camera.from_fov(look_at((0, 0, 1), (10, 0, 0)), 96, 64)
+    options = RenderOptions(point_size=0.2)
+    streamed = Renderer(scene, 96, 64, options)
+    streamed.render(camera)
+    in_memory = Renderer(scene_from_sequence(sequence, max_points=2_000), 96, 64, options)
+    in_memory.render(camera)
+    assert abs(float((streamed.index >= 0).mean()) - float((in_memory.index >= 0).mean())) < 0.05
+    # the scans are volumes of scattered points, so single pixels differ; the depth they show does not
+    typical = [float(np.median(r.depth[np.isfinite(r.depth)])) for r in (streamed, in_memory)]
+    assert typical[0] == pytest.approx(typical[1], rel=0.1)

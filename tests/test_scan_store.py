@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import tracemalloc
 from pathlib import Path
 
@@ -119,3 +120,25 @@ def test_memory_sizes_parse_as_written(text: str, value: int) -> None:
 def test_bad_memory_sizes_are_refused(text: str) -> None:
     with pytest.raises(ValueError, match="memory size"):
         parse_bytes(text)
+
+
+@pytest.mark.skipif(not Path("/proc/self/status").is_file(), reason="VmHWM is Linux's")
+def test_peak_memory_is_the_commands_own_not_its_launchers() -> None:
+    """`slam6d run` / `slam6d render` started from a big process (a benchmark) report their own peak:
+    Linux's ru_maxrss would carry the launcher's over fork and exec."""
+    import subprocess
+    import sys
+
+    from slam6d.scan_store import peak_memory_bytes
+
+    ballast = np.ones(300_000_000 // 8)  # touched: resident
+    parent = peak_memory_bytes()
+    child = subprocess.run(
+        [sys.executable, "-c", "from slam6d.scan_store import peak_memory_bytes; print(peak_memory_bytes())"],
+        capture_output=True,
+        text=True,
+        check=True,
+        env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parent.parent)},
+    )
+    assert parent >= ballast.nbytes
+    assert 0 < int(child.stdout) < parent - 200_000_000
