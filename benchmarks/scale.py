@@ -27,8 +27,23 @@ finding the bounded neighbour graph, gathering each scan's batch of neighbour po
 sparse linear algebra (working out the block pattern, factorising and solving) - the measurement
 that decides whether the solve needs windows or a hierarchy (docs/scale.md).
 
+``--per-step N`` instead measures where the campus's height error comes from, on its first N scans:
+
+* the cause: every consecutive pair matched from its TRUE relative pose by 15 point-to-plane steps
+  against the registration model sequential matching uses (the scan reduced to 0.1 m, a 0.2 m
+  plane sample, 0.35 m data points, 0.25 m pairs), with the model's normals taken three ways:
+  0.4 m cubes alone (the registration's normals before the fix, k-NN where a cube gives none), the
+  cubes of :func:`slam6d.normals.cell_normals` (0.4-3.2 m, k-NN where none holds a plane, as the
+  registration model does), and the mesh's exact surface normals.
+  Whatever the steps move away from the truth is the error of the cost itself; per normal source it
+  prints the RMS per-step roll, pitch, yaw and height error and how many paired normals are more
+  than 5° off the surface;
+* the effect: ``slam6d``'s sequential registration alone (no loops, no relaxation) over the same
+  scans: per-step error RMS, and the ATE split into horizontal and vertical.
+
 Run: ``.venv/bin/python benchmarks/scale.py --work /tmp/scale --loop 100 200 400 --campus 250 500 1000``;
-``.venv/bin/python benchmarks/scale.py --work /tmp/scale --loop --campus 250 500 --profile-relaxation``.
+``.venv/bin/python benchmarks/scale.py --work /tmp/scale --loop --campus 250 500 --profile-relaxation``;
+``.venv/bin/python benchmarks/scale.py --work /tmp/scale --per-step 100``.
 The figures measured so far, with their load, are in docs/scale.md; the campus runs (loops closed,
 ATE and why it stays in metres) in docs/robustness.md, "Loops on the campus".
 """
@@ -47,10 +62,18 @@ from typing import Any
 
 import numpy as np
 
-from slam6d.geometry import UOS
+from slam6d import nn
+from slam6d.geometry import UOS, Matrix, invert, transform_points
+from slam6d.icp import point_to_plane_step
 from slam6d.io.frames import FrameType, read_frames
 from slam6d.io.poses import read_kitti_poses
-from slam6d.metrics import absolute_trajectory_error
+from slam6d.io.registry import read_sequence
+from slam6d.metrics import absolute_trajectory_error, rigid_alignment
+from slam6d.model import NORMAL_NEIGHBOURS
+from slam6d.normals import cell_normals, estimate_normals
+from slam6d.octree import reduce_points
+from slam6d.pipeline import Pipeline, PipelineConfig
+from slam6d.simulate import SimulationConfig, simulated_scans
 
 CASES = {
     "loop": ["--seed", "3", "--points-per-scan", "30000"],
@@ -181,6 +204,100 @@ def profile_relaxation(directory: Path) -> None:
     )
 
 
+def step_errors(truth: list[Matrix], estimate: list[Matrix]) -> np.ndarray:
+    """Per consecutive pair: the estimated relative motion's error against the true one, as
+    (roll, pitch, yaw in degrees, height in cm) in the earlier scan's frame (z up)."""
+    rows = []
+    for k in range(1, len(truth)):
+        error = invert(invert(truth[k - 1]) @ truth[k]) @ (invert(estimate[k - 1]) @ estimate[k])
+        rows.append(step_error(error))
+    return np.array(rows)
+
+
+def step_error(error: Matrix) -> list[float]:
+    r = error[:3, :3]
+    angle = np.arccos(np.clip((np.trace(r) - 1) / 2, -1, 1))
+    axis = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]])
+    vector = axis * (angle / (2 * np.sin(angle))) if angle > 1e-12 else axis / 2
+    return [*np.degrees(vector), 100 * error[2, 3]]
+
+
+def rms_row(name: str, errors: np.ndarray, extra: str = "") -> str:
+    roll, pitch, yaw, dz = np.sqrt(np.mean(errors**2, axis=0))
+    return f"| {name} | {roll:.3f}° | {pitch:.3f}° | {yaw:.3f}° | {dz:.2f} cm |{extra}"
+
+
+def per_step(work: Path, scans: int) -> None:
+    """The ``--per-step`` tables (see the module docstring)."""
+    config = SimulationConfig(seed=3, scans=scans, points_per_scan=20000, world="campus")
+    simulation = simulated_scans(config)
+    clouds = list(simulation.scans())
+    truth = simulation.truth
+    pipeline = PipelineConfig()
+    voxel, cell = pipeline.voxel_size, pipeline.normal_cell_voxels * pipeline.voxel_size
+    sample_voxel, data_voxel = pipeline.sample_voxels * voxel, pipeline.data_voxel_size
+    max_distance = pipeline.icp.max_distance
+    sources = ("0.4 m cubes (before)", "0.4-3.2 m cubes (now)", "mesh surface normals")
+    errors: dict[str, list[list[float]]] = {name: [] for name in sources}
+    off: dict[str, list[float]] = {name: [] for name in sources}
+    for k in range(1, scans):
+        reduced = clouds[k - 1][reduce_points(clouds[k - 1], voxel)]
+        sample = reduce_points(reduced, sample_voxel)
+        points = reduced[sample]
+        index = nn.build_index(points, nn.DEFAULT_BACKEND, 2)
+        directions = points / np.linalg.norm(points, axis=1, keepdims=True)
+        surface = simulation.scene.surface_normals(truth[k - 1][:3, 3], directions @ truth[k - 1][:3, :3].T)
+        surface = surface @ truth[k - 1][:3, :3]  # into the scanner's frame
+        knn, knn_ok = estimate_normals(index, points, NORMAL_NEIGHBOURS)
+        old, old_ok = cell_normals(reduced, cell, levels=1, min_spread=0.0, max_thickness=1.0)
+        new, new_ok = cell_normals(reduced, cell)
+        normals = {
+            sources[0]: (np.where(old_ok[sample, None], old[sample], knn), old_ok[sample] | knn_ok),
+            sources[1]: (np.where(new_ok[sample, None], new[sample], knn), new_ok[sample] | knn_ok),
+            sources[2]: (surface, np.ones(len(points), dtype=np.bool_)),
+        }
+        data_all = clouds[k][reduce_points(clouds[k], voxel)]
+        data = data_all[reduce_points(data_all, data_voxel)]
+        relative = invert(truth[k - 1]) @ truth[k]
+        for name, (n, usable) in normals.items():
+            transform = relative.copy()
+            paired = np.zeros(len(points), dtype=np.bool_)
+            for _ in range(15):
+                moved = transform_points(transform, data)
+                _, partner = index.nearest(moved, max_distance)
+                found = np.flatnonzero(partner >= 0)
+                found = found[usable[partner[found]]]
+                paired[partner[found]] = True
+                transform = point_to_plane_step(moved[found], points[partner[found]], n[partner[found]]) @ transform
+            errors[name].append(step_error(invert(relative) @ transform))
+            cosine = np.abs(np.einsum("ij,ij->i", n[paired], surface[paired]))
+            off[name].append(float(np.mean(cosine < np.cos(np.radians(5.0)))))
+    print(f"campus, first {scans} scans: each consecutive pair matched from its true relative pose (RMS per step)")
+    print("| model normals | roll | pitch | yaw | height | paired normals > 5° off the surface |")
+    print("|---|---|---|---|---|---|")
+    for name in sources:
+        print(rms_row(name, np.array(errors[name]), f" {100 * np.mean(off[name]):.0f} % |"))
+    directory = session(work, "campus", scans)
+    sequence = read_sequence(directory, "uos")
+    run = Pipeline(sequence, PipelineConfig(loops=False, relaxation="none"))
+    run.run()
+    estimate = [np.asarray(p) for p in run.poses]
+    truth_files = [UOS.pose_to_canonical(p) for p in read_kitti_poses(directory / "ground_truth_kitti.txt")]
+    positions = np.array([p[:3, 3] for p in estimate])
+    reference = np.array([p[:3, 3] for p in truth_files])
+    alignment = rigid_alignment(positions, reference)
+    apart = positions @ alignment[:3, :3].T + alignment[:3, 3] - reference
+    horizontal = 100 * np.sqrt(np.mean(np.sum(apart[:, :2] ** 2, axis=1)))
+    vertical = 100 * np.sqrt(np.mean(apart[:, 2] ** 2))
+    print(f"\nsequential registration alone (slam6d, no loops, no relaxation) over the same {scans} scans")
+    print("| | roll | pitch | yaw | height | ATE (horizontal / vertical) |")
+    print("|---|---|---|---|---|---|")
+    ate = 100 * absolute_trajectory_error(estimate, truth_files).rmse
+    print(
+        rms_row("per step", step_errors(truth_files, estimate), f" {ate:.1f} cm ({horizontal:.1f} / {vertical:.1f}) |")
+    )
+
+
 def exponent(scans: list[int], seconds: list[float]) -> float:
     """Slope of log(seconds) against log(scans): 1 is linear, 2 quadratic."""
     return float(np.polyfit(np.log(scans), np.log(seconds), 1)[0])
@@ -196,6 +313,7 @@ def main() -> None:
     parser.add_argument(
         "--profile-relaxation", action="store_true", help="profile LUM relaxation on the campus sessions instead"
     )
+    parser.add_argument("--per-step", type=int, metavar="N", help="only the campus's per-step error tables on N scans")
     args = parser.parse_args()
     if args.profile_relaxation:
         print(f"LUM relaxation under cProfile, {os.cpu_count()} cores (cProfile itself adds some time)")
@@ -203,6 +321,9 @@ def main() -> None:
         print("|---|---|---|---|---|---|---|")
         for scans in args.campus:
             profile_relaxation(session(args.work, "campus", scans))
+        return
+    if args.per_step:
+        per_step(args.work, args.per_step)
         return
     extra = ["--memory-budget", args.memory_budget] if args.memory_budget else []
     print(f"slam6d run, {os.cpu_count()} cores; load average before: {os.getloadavg()[0]:.1f}")

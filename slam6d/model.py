@@ -39,8 +39,10 @@ class ModelIndex:
     plane, while on the reduced sample they spread across lines. Matching against the same sample
     costs nothing in accuracy (the plane, not the sample point, carries the residual) and is about
     30 % faster on the BALM pair. ``normal_voxel_size`` 0 uses the raw points. ``normal_cell`` > 0
-    takes the normals from the cubes of that size instead (:func:`cell_normals` over all the model's
-    points), so the sample only decides which points are paired.
+    takes the normals from the cubes of that size instead, or of up to eight times that size where
+    the smaller cube holds no plane (:func:`cell_normals` over all the model's points: a multi-beam
+    lidar's rings are farther apart than one cube), so the sample only decides which points are
+    paired.
 
     Everything is built on first use and cached: point-to-point never pays for normals, and normals
     are estimated only for sample points that actually get paired. One index may serve registrations

@@ -5,6 +5,31 @@ of the points' covariance, in closed form) and mark a normal unusable where the 
 degenerate or line-like, since a scan line alone gives no plane. :func:`estimate_normals` takes each
 point's k nearest neighbours; :func:`cell_normals` the points sharing its cube, about ten times
 cheaper (one pass of moments, no neighbour query), for the registration of many scans in a row.
+
+Why the cubes grow (multi-beam lidar). A VLP-16 on a car meets the ground with its lowest beam ~7 m
+out and its rings lie 1-3 m apart there; on walls 10-20 m away its rings are 0.35-0.7 m apart. A
+0.4 m cube therefore holds one ring: a line. Without range noise a line fails the planarity test;
+with the sensor's 3 cm of noise along the beams it passes (middle / large eigenvalue ~0.07 > 0.05),
+and the "plane" it gives contains the beam, so a ground normal leans by the beam's depression angle
+(median 11°, the ring-sampled ground of ``tests/test_normals.py``: 9°). Where the cube gave
+nothing, the registration model's k-NN fallback on the 0.2 m plane sample takes 12 neighbours along
+the same ring and fails the same way. This is the cause of the simulated campus's roll/pitch drift,
+measured by ``benchmarks/scale.py --per-step 100``: ICP started at the *true* relative pose of each
+consecutive pair moves away from it by 0.25° roll and 0.25° pitch RMS per step (1.6 cm in height)
+with these normals, 62 % of which are more than 5° off the true surface; with the simulator's exact
+surface normals at the same pairs it moves 0.05° and 0.03° (0.4 cm). The pairing, the data
+reduction and the distance stages are not it (each changed moves the per-step error by < 0.05°).
+
+So a cube holds a plane only when its points spread across it in a second direction by more than a
+scan line's noise does (``CELL_MIN_SPREAD``) and lie on one surface (``CELL_MAX_THICKNESS``), and a
+point whose 0.4 m cube holds no plane takes the plane of the cube twice, four or eight times as
+large, which spans two rings: the cube normals of the ring-sampled ground are level (95 % within
+0.3°, was 9° off). That alone barely moves the campus's per-step error (0.24° / 0.23°), because the
+k-NN fallback still serves half the pairs; without the fallback the error from the truth drops to
+0.18° / 0.18°, but the pairs lost on walls double the yaw error and the 100-scan registration ends
+51 cm off instead of 9-13 cm, so the fallback stays until ring-aware neighbourhoods replace it
+(docs/scale.md, "Roll and pitch on the campus"). Dense scanners (the seed's SICK fan, BALM's hall)
+find their plane in the smallest cube, as before.
 """
 
 from __future__ import annotations
@@ -18,6 +43,10 @@ from numpy.typing import NDArray
 from slam6d import nn
 
 FloatArray = NDArray[np.float64]
+
+CELL_LEVELS = 4  # cube sizes tried per point by cell_normals: 1, 2, 4, 8 x the cell size
+CELL_MIN_SPREAD = 0.25  # middle eigenvalue >= this x a fully covered cube's (size**2 / 12)
+CELL_MAX_THICKNESS = 0.1  # small eigenvalue <= this x the middle one
 
 
 @numba.njit(cache=True, inline="always")
@@ -59,12 +88,15 @@ def _smallest_eigenvector(c00, c01, c02, c11, c12, c22):  # type: ignore[no-unty
 
 
 @numba.njit(cache=True, inline="always")
-def _store_plane_normal(normals, valid, row, c00, c01, c02, c11, c12, c22, min_planarity):  # type: ignore[no-untyped-def]
+def _store_plane_normal(normals, valid, row, c00, c01, c02, c11, c12, c22, min_planarity, min_middle, max_thickness):  # type: ignore[no-untyped-def]
     """Normal of a covariance into ``normals[row]`` when the points form a plane. A neighbourhood
     along a single scan line is a line, not a plane (middle eigenvalue ~0): its "normal" is arbitrary,
-    so it is left invalid - one rule for every normal estimator."""
-    x, y, z, _small, middle, large = _smallest_eigenvector(c00, c01, c02, c11, c12, c22)
-    if large > 0.0 and middle > min_planarity * large and (x != 0.0 or y != 0.0 or z != 0.0):
+    so it is left invalid - one rule for every normal estimator. ``min_middle`` (an absolute floor
+    of the middle eigenvalue) and ``max_thickness`` (of small / middle) are the cubes' further tests
+    (:func:`cell_normals`); the k-NN estimate passes 0 and 1, which test nothing."""
+    x, y, z, small, middle, large = _smallest_eigenvector(c00, c01, c02, c11, c12, c22)
+    planar = large > 0.0 and middle > min_planarity * large and middle >= min_middle
+    if planar and small <= max_thickness * middle and (x != 0.0 or y != 0.0 or z != 0.0):
         normals[row, 0] = x
         normals[row, 1] = y
         normals[row, 2] = z
@@ -112,7 +144,7 @@ def _normals_kernel(points, neighbours, min_planarity):  # type: ignore[no-untyp
                 c11 += dy * dy
                 c12 += dy * dz
                 c22 += dz * dz
-        _store_plane_normal(normals, valid, i, c00, c01, c02, c11, c12, c22, min_planarity)
+        _store_plane_normal(normals, valid, i, c00, c01, c02, c11, c12, c22, min_planarity, 0.0, 1.0)
     return normals, valid
 
 
@@ -153,7 +185,7 @@ def _cell_moments(points, cell_of, cells):  # type: ignore[no-untyped-def]
 
 
 @numba.njit(cache=True, nogil=True)
-def _cell_normals_kernel(moments, min_points, min_planarity):  # type: ignore[no-untyped-def]
+def _cell_normals_kernel(moments, min_points, min_planarity, min_middle, max_thickness):  # type: ignore[no-untyped-def]
     n = moments.shape[0]
     normals = np.zeros((n, 3))
     valid = np.zeros(n, dtype=np.bool_)
@@ -170,32 +202,59 @@ def _cell_normals_kernel(moments, min_points, min_planarity):  # type: ignore[no
         c11 = moments[c, 7] / count - my * my
         c12 = moments[c, 8] / count - my * mz
         c22 = moments[c, 9] / count - mz * mz
-        _store_plane_normal(normals, valid, c, c00, c01, c02, c11, c12, c22, min_planarity)
+        _store_plane_normal(normals, valid, c, c00, c01, c02, c11, c12, c22, min_planarity, min_middle, max_thickness)
     return normals, valid
 
 
 def cell_normals(
-    points: FloatArray, cell_size: float, min_points: int = 4, min_planarity: float = 0.05
+    points: FloatArray,
+    cell_size: float,
+    min_points: int = 4,
+    min_planarity: float = 0.05,
+    levels: int = CELL_LEVELS,
+    min_spread: float = CELL_MIN_SPREAD,
+    max_thickness: float = CELL_MAX_THICKNESS,
 ) -> tuple[FloatArray, NDArray[np.bool_]]:
-    """Unit normal at every point from a PCA of the points sharing its ``cell_size`` cube, and which are usable.
+    """Unit normal at every point from a PCA of the points sharing its cube, and which are usable.
 
     About ten times cheaper than :func:`estimate_normals` on a reduced scan (no k-nearest-neighbour
-    query: one pass accumulates each cube's moments), at the price of fewer usable normals (cubes
-    across an edge or with fewer than ``min_points`` points are unusable) and cruder ones near
-    edges. Sequential registration, which re-estimates nothing and only needs the planes to slide
-    along, uses these; relaxation keeps the k-NN normals.
+    query: one pass accumulates each cube's moments per level). Sequential registration, which
+    re-estimates nothing and only needs the planes to slide along, uses these; relaxation keeps the
+    k-NN normals.
+
+    A point takes the normal of its ``cell_size`` cube when that cube holds a plane, else of the
+    cube twice as large, up to ``levels`` sizes (see the module docstring for why multi-beam scans
+    need the larger ones). A cube holds a plane when (eigenvalues of its points' covariance
+    ``small <= middle <= large``) ``middle > min_planarity * large`` (not a line),
+    ``middle >= min_spread * size**2 / 12`` (the points spread across the cube in a second direction
+    by more than a scan line's range noise does: a whole cube covered has ``size**2 / 12``) and
+    ``small <= max_thickness * middle`` (one flat surface, not two meeting in an edge). Points
+    whose cubes are unusable at every level are marked unusable.
     """
     points = np.ascontiguousarray(points, dtype=np.float64)
     if len(points) == 0:
         return np.zeros((0, 3)), np.zeros(0, dtype=np.bool_)
     local = points - points.mean(axis=0)  # moments about a nearby origin keep the covariance exact
-    cells = np.floor(local / float(cell_size)).astype(np.int64)
-    keys = (cells[:, 0] << 42) + (cells[:, 1] << 21) + cells[:, 2]
-    _, cell_of = np.unique(keys, return_inverse=True)
-    cell_of = cell_of.ravel()
-    moments = _cell_moments(local, cell_of, int(cell_of.max()) + 1)
-    normals, valid = _cell_normals_kernel(moments, float(min_points), float(min_planarity))
-    return normals[cell_of], valid[cell_of]
+    normals = np.zeros((len(points), 3))
+    valid = np.zeros(len(points), dtype=np.bool_)
+    size = float(cell_size)
+    for _ in range(max(1, int(levels))):
+        todo = np.flatnonzero(~valid)
+        if len(todo) == 0:
+            break
+        cells = np.floor(local / size).astype(np.int64)  # every point counts, also those placed already
+        keys = (cells[:, 0] << 42) + (cells[:, 1] << 21) + cells[:, 2]
+        unique, cell_of = np.unique(keys, return_inverse=True)
+        cell_of = cell_of.ravel()
+        moments = _cell_moments(local, cell_of, len(unique))
+        floor = float(min_spread) * size * size / 12.0
+        cube_normals, cube_valid = _cell_normals_kernel(
+            moments, float(min_points), float(min_planarity), floor, float(max_thickness)
+        )
+        normals[todo] = cube_normals[cell_of[todo]]
+        valid[todo] = cube_valid[cell_of[todo]]
+        size *= 2.0
+    return normals, valid
 
 
 class _numba_threads:  # noqa: N801 - used like a function in a with-statement

@@ -103,10 +103,18 @@ class Scene:
 
     def cast(self, origin: NDArray[np.float64], directions: NDArray[np.float64]) -> NDArray[np.float64]:
         """Distance to the first surface along each unit direction (inf for no hit)."""
+        return self._cast_rays(origin, directions)["t_hit"].numpy().astype(np.float64)
+
+    def surface_normals(self, origin: NDArray[np.float64], directions: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Unit normal of the first surface along each unit direction (0 for no hit): the exact
+        normals an estimate from the scan's points can be judged against."""
+        return self._cast_rays(origin, directions)["primitive_normals"].numpy().astype(np.float64)
+
+    def _cast_rays(self, origin: NDArray[np.float64], directions: NDArray[np.float64]) -> dict[str, o3d.core.Tensor]:
         if self._caster is None:
             self._caster = o3d.t.geometry.RaycastingScene()
             self._caster.add_triangles(o3d.core.Tensor(self.vertices), o3d.core.Tensor(self.triangles))  # type: ignore[call-overload]
         rays = np.empty((len(directions), 6), dtype=np.float32)
         rays[:, :3] = origin
         rays[:, 3:] = directions
-        return self._caster.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy().astype(np.float64)  # type: ignore[call-overload]
+        return self._caster.cast_rays(o3d.core.Tensor(rays))  # type: ignore[call-overload]
