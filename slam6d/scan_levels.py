@@ -162,6 +162,15 @@ class ScanLevels:
         sizes = self.level_points[k]
         return self.store.prefix(k, sizes[min(max(level, 0), len(sizes) - 1)])
 
+    def sample(self, k: int, count: int) -> NDArray[np.float32]:
+        """Scan k's first ``count`` points (all of them if it has fewer; float32, its own frame).
+
+        Any prefix of the progressive order is an even sample of the scan, also one cut between two
+        levels, so a caller needing a set number of points per scan (a first look at a thousand scans
+        below their coarsest level, a bounded copy for residuals) reads exactly that many.
+        """
+        return self.store.prefix(k, count)
+
 
 def _key(fingerprint: str) -> str:
     return f"v{_FORMAT}|{FIRST_LEVEL}|{LEVEL_STEP}|{GRID_CELL}|{fingerprint}"
