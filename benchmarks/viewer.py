@@ -6,6 +6,7 @@ updates at >= 20 per second.
 
     .venv/bin/python benchmarks/viewer.py [--scans 77] [--shots 149000] [--rate 30] [--seconds 5]
     .venv/bin/python benchmarks/viewer.py --world campus --scans 1000 --shots 200000 --seed 3   # 100M points
+    .venv/bin/python benchmarks/viewer.py --scans-dir campus --first-view   # the first view step by step, memory after the edge colours
 
 The session comes from ``slam6d.simulate`` (``--shots`` laser shots per scan: about two thirds return
 in the loop world and one half in the campus, so 149,000 shots give ~100k points per scan there and
@@ -28,11 +29,15 @@ What is measured, in the browser (a script injected into the viewer's frame befo
   The canvas keeps its drawing buffer (viser sets ``preserveDrawingBuffer``), so this reads the
   frame just drawn.
 
-The viewer sends the map in two passes (every scan at the levels of detail that fit the coarse budget,
-then at the full budget).
-Whole map first drawn = from ``page.goto`` until the end of the first frame that drew every point
-of the coarse pass (every scan received and drawn); full budget drawn = until the first frame that
-drew every point of the full pass. A single-pass view (a budget at or under the coarse one) gives
+The viewer sends the map in two passes (the first look: every scan in one cloud within the first-look
+budget, then every scan at the full budget).
+Whole map first drawn = from ``page.goto`` (which returns as soon as the response starts, so every
+step is seen from the navigation's start) until the end of the first frame that drew every point
+of the first look; its steps are printed too: the viewer started (the page request starts it), the
+first look sent, the viser client page started in its frame, its first message and the first look
+arrived there. Full budget drawn = until the first frame that drew every point of the full pass.
+``--first-view`` stops after the first look is drawn and instead waits until the graph's edges are
+coloured by residual, then prints the server's memory (what that colouring reads stays bounded). A single-pass view (a budget at or under the coarse one) gives
 the same time for both. A screenshot afterwards checks the canvas shows the map.
 Pose updates: a thread moves one scan at ``--rate`` per second for ``--seconds`` through
 ``SessionViewer.set_poses`` (what the stepper calls), between ``begin_playback`` with that scan and
