@@ -74,7 +74,7 @@ class DetailStream:
 
     def read(self, levels: Sequence[int]) -> list[np.ndarray]:
         """Each scan's points at its level (float32, own frame)."""
-        return [self.levels.points(k, level) for k, level in enumerate(levels)]
+        return self.levels.at_levels(levels)
 
     def first_look(self, budget: int, poses: Sequence[Matrix]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Every scan in one cloud of at most ``budget`` points, each in its scan colour: (points relative
@@ -83,14 +83,14 @@ class DetailStream:
 
         The scans get the levels :meth:`choose` gives for ``budget``; when even their coarsest levels are
         over it (1,000 scans x 128 points), every scan gets an equal share as a prefix of its progressive
-        order (an even sample of the scan, :meth:`ScanLevels.sample`).
+        order (an even sample of the scan, :meth:`ScanLevels.samples`).
         """
         centre = np.mean([p[:3, 3] for p in poses], axis=0)
         counts = [self.levels.level_points[k][level] for k, level in enumerate(self.choose(budget, poses))]
         if sum(counts) > budget:
             share = max(budget // max(len(counts), 1), 1)
             counts = [min(count, share) for count in counts]
-        clouds = [self.levels.sample(k, count) for k, count in enumerate(counts)]
+        clouds = self.levels.samples(counts)
         world = [
             c @ p[:3, :3].T.astype(np.float32) + (p[:3, 3] - centre).astype(np.float32)
             for c, p in zip(clouds, poses, strict=True)

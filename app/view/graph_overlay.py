@@ -141,7 +141,7 @@ class GraphOverlay:
             levels = self.levels()
             if levels is None:
                 raise RuntimeError("the scans' levels of detail are not loaded")
-            samples = [levels.sample(k, RESIDUAL_SAMPLE).astype(np.float64) for k in range(len(levels))]
+            samples = [s.astype(np.float64) for s in levels.samples([RESIDUAL_SAMPLE] * len(levels))]
             self.models = self.view.editor.context.reduce(self.view.session_id, samples)
         return self.models
 
