@@ -22,7 +22,7 @@ with another fingerprint (changed scan files, other read settings) is rebuilt, n
 from __future__ import annotations
 
 import shutil
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -159,8 +159,25 @@ class ScanLevels:
 
     def points(self, k: int, level: int) -> NDArray[np.float32]:
         """Scan k's points at ``level`` (float32, its own frame): one read of a prefix, nothing cached."""
+        return self.store.prefix(k, self.size(k, level))
+
+    def at_levels(self, levels: Sequence[int]) -> list[NDArray[np.float32]]:
+        """Every scan at its level in ``levels`` (:meth:`points` for all scans, one open of the store)."""
+        return self.store.prefixes((k, self.size(k, level)) for k, level in enumerate(levels))
+
+    def size(self, k: int, level: int) -> int:
+        """Points of scan k at ``level`` (clamped to its levels)."""
         sizes = self.level_points[k]
-        return self.store.prefix(k, sizes[min(max(level, 0), len(sizes) - 1)])
+        return sizes[min(max(level, 0), len(sizes) - 1)]
+
+    def samples(self, counts: Sequence[int]) -> list[NDArray[np.float32]]:
+        """Each scan's first ``counts[k]`` points (all of them if it has fewer; float32, its own frame).
+
+        Any prefix of the progressive order is an even sample of the scan, also one cut between two
+        levels, so a caller needing a set number of points per scan (a first look at a thousand scans
+        below their coarsest level, a bounded copy for residuals) reads exactly that many.
+        """
+        return self.store.prefixes(enumerate(counts))
 
 
 def _key(fingerprint: str) -> str:

@@ -17,6 +17,7 @@ even reading holds the whole session. :func:`parse_bytes` reads budgets as a use
 from __future__ import annotations
 
 import json
+import os
 import re
 import threading
 from collections import OrderedDict
@@ -186,15 +187,35 @@ class ScanStore:
     def prefix(self, k: int, count: int) -> NDArray[np.float32]:
         """The first ``count`` points of scan k as stored (float32), read from disk and not cached: the
         levels of detail of :mod:`slam6d.scan_levels` are prefixes, read far more often than once."""
-        if not 0 <= k < len(self.counts):
-            raise IndexError(f"scan {k} is not in the store of {len(self.counts)} scans at {self.directory}")
-        count = min(max(int(count), 0), int(self.counts[k]))
-        raw = np.fromfile(
-            self.directory / POINTS_FILE, dtype=np.float32, count=count * 3, offset=int(self.offsets[k]) * 12
-        )
+        return self.prefixes([(k, count)])[0]
+
+    def prefixes(self, requests: Iterable[tuple[int, int]]) -> list[NDArray[np.float32]]:
+        """:meth:`prefix` for each ``(scan, count)``, with one open of the points file for all of them.
+
+        A view reads a prefix of every scan of a 1,000-scan map at once; opening the file per scan cost
+        ~0.35 ms each (0.35 s on the path to the first view), the reads themselves a few µs.
+        """
+        path = self.directory / POINTS_FILE
+        clouds = []
+        fd = os.open(path, os.O_RDONLY)
+        try:
+            for k, count in requests:
+                if not 0 <= k < len(self.counts):
+                    raise IndexError(f"scan {k} is not in the store of {len(self.counts)} scans at {self.directory}")
+                points = np.empty((min(max(int(count), 0), int(self.counts[k])), 3), dtype=np.float32)
+                buffer = points.data.cast("B") if len(points) else memoryview(b"")  # (no cast of an empty shape)
+                offset, done = int(self.offsets[k]) * 12, 0
+                while done < len(buffer):  # a read may return less than asked for
+                    read = os.preadv(fd, [buffer[done:]], offset + done)
+                    if read == 0:
+                        raise ScanStoreError(f"{path}: ends inside scan {k} ({self.names[k]})")
+                    done += read
+                clouds.append(points)
+        finally:
+            os.close(fd)
         with self._lock:
-            self.read_bytes += raw.nbytes
-        return raw.reshape(-1, 3)
+            self.read_bytes += sum(cloud.nbytes for cloud in clouds)
+        return clouds
 
     @staticmethod
     def holds(directory: Path | str) -> bool:

@@ -41,6 +41,19 @@ def test_store_round_trips_points_as_float32_with_poses_and_names(tmp_path: Path
         store.points(5)
 
 
+def test_prefixes_of_many_scans_are_their_first_points_in_one_pass(tmp_path: Path) -> None:
+    scans = _scans(4, 500)
+    store = ScanStore(ScanStore.create(tmp_path / "store", iter(scans)), budget=1)
+    asked = [(2, 100), (0, 10_000), (3, 0), (1, 333), (2, 7)]  # any order; counts beyond a scan give all of it
+    for (k, count), cloud in zip(asked, store.prefixes(asked), strict=True):
+        assert cloud.dtype == np.float32 and cloud.flags.writeable
+        np.testing.assert_array_equal(cloud, scans[k].points[:count].astype(np.float32))
+    np.testing.assert_array_equal(store.prefix(1, 50), scans[1].points[:50].astype(np.float32))
+    assert store.resident_bytes == 0  # prefixes are never cached
+    with pytest.raises(IndexError, match="scan 4"):
+        store.prefixes([(0, 1), (4, 1)])
+
+
 def test_lru_never_holds_more_than_its_budget(tmp_path: Path) -> None:
     """By its own accounting after every request, and measured: numpy's allocations while 200
     random requests cycle through 12 scans stay within the budget plus the one read in flight."""

@@ -291,3 +291,40 @@ def test_a_smaller_budget_coarsens_the_map_and_a_picked_scan_is_shown_in_full(co
         detail.levels.level_points[k][lv] for k, lv in enumerate(detail.shown)
     ]
     assert view.scans.nodes[1].colors.tolist() == [255, 255, 255]  # the resent node keeps the pick colour
+
+
+def test_edge_colours_come_from_bounded_samples_of_the_scans_and_match_the_full_scans(tmp_path):
+    """A reopened view colours its edges without reading any scan in full, within a shade of the full scans' colours."""
+    from app.resources import ResourceLimits
+    from app.server import create_app
+    from app.view.graph_overlay import RESIDUAL_SAMPLE
+    from tests.session_fixtures import corridor_session
+
+    corridor_session(tmp_path / "sessions", scans=4, points=30_000)
+    first = create_app(tmp_path / "sessions", limits=ResourceLimits(viewer_grace_s=3600))
+    assert first.state.viewers.get("corridor").ready.wait(60)  # the first open orders the levels once
+    first.state.viewers.stop_all()
+
+    app = create_app(tmp_path / "sessions", limits=ResourceLimits(viewer_grace_s=3600))
+    view = app.state.viewers.get("corridor")
+    assert view.ready.wait(30) and view.error is None
+    try:
+        moved = [p.copy() for p in view.scans.poses]
+        moved[3] = moved[3] @ pose_from_xyzrpy(0.02, -0.015, 0, 0, 0, 0.004)  # one edge half-way up the scale
+        view.set_poses(moved)
+        view.graph.draw()
+        colours = _edge_colours_when_computed(view)
+        assert not view.state.loaded  # no scan was read in full
+        models = view.graph.models
+        assert models is not None and all(len(p) <= RESIDUAL_SAMPLE for p in models.points)
+        assert sum(len(p) for p in models.points) < 0.3 * view.scans.total_points
+
+        full = view.editor.context.residuals("corridor", moved)  # the editor's models of the full scans
+        for edge in full.edges:
+            sampled = view.graph.edge_residuals[(edge["i"], edge["j"])]
+            assert abs(sampled - edge["plane"]) <= 0.1 * view.graph.edge_scale, (edge, sampled)
+        assert view.graph.edge_residuals[(2, 3)] > 3 * view.graph.edge_residuals[(0, 1)]
+        expected = display.edge_colours([e["plane"] for e in full.edges if e["j"] == e["i"] + 1], view.graph.edge_scale)
+        assert np.abs(colours.astype(int) - expected[:, 0].astype(int)).max() <= 60  # within about one shade
+    finally:
+        app.state.viewers.stop_all()

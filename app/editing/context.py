@@ -18,7 +18,7 @@ from slam6d.geometry import Matrix
 from slam6d.graph_relaxation import graph_information
 from slam6d.journal import Change
 from slam6d.pipeline import PipelineConfig
-from slam6d.relax import ScanModels
+from slam6d.relax import FloatArray, ScanModels
 from slam6d.relaxation_methods import reduced_models
 from slam6d.residuals import ResidualSummary, residual_jump, residual_summary
 from slam6d.session import Session
@@ -53,8 +53,7 @@ class EditContext:
             cached = self._models.get(session_id)
             if cached is not None and cached[0] == id(sequence):
                 return cached[1]
-            config = self.config(session_id)
-            models = reduced_models([s.points for s in sequence.scans], config.voxel_size, config.icp)
+            models = self.reduce(session_id, [s.points for s in sequence.scans])
             self._models[session_id] = (id(sequence), models)
             return models
 
@@ -81,11 +80,23 @@ class EditContext:
         return graph_information(self.models(session_id), poses, edges, self.config(session_id).relax)
 
     def residuals(
-        self, session_id: str, poses: Sequence[Matrix] | None = None, graph: dict[str, Any] | None = None
+        self,
+        session_id: str,
+        poses: Sequence[Matrix] | None = None,
+        graph: dict[str, Any] | None = None,
+        models: ScanModels | None = None,
     ) -> ResidualSummary:
+        """The engine's residual summary of the edges of ``graph`` at ``poses``; against ``models`` when
+        given (e.g. the 3D view's bounded copies of the scans), else the session's reduced scans."""
         poses = self.poses(session_id) if poses is None else poses
         pairs = [(e["i"], e["j"]) for e in self.edges(session_id, graph)]
-        return residual_summary(self.models(session_id), poses, pairs)
+        return residual_summary(self.models(session_id) if models is None else models, poses, pairs)
+
+    def reduce(self, session_id: str, points: Sequence[FloatArray]) -> ScanModels:
+        """Models of ``points`` (one cloud per scan, its own frame) reduced as the session's engine reduces
+        scans: :meth:`models` of the full scans, or of bounded samples of them (the 3D view's edge colours)."""
+        config = self.config(session_id)
+        return reduced_models(list(points), config.voxel_size, config.icp)
 
     def commit_checked(
         self,

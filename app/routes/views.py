@@ -49,7 +49,7 @@ async def viser_root(session_id: str) -> RedirectResponse:
 async def viser_files(session_id: str, path: str, request: Request) -> Response:
     port = await _viewer_port(request.app.state.viewers, session_id)
     client: httpx.AsyncClient = request.app.state.viser_client
-    return await forward_file(client, port, path, request)
+    return await forward_file(client, port, path)
 
 
 @router.websocket("/viser/{session_id}")

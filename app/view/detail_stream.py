@@ -74,13 +74,23 @@ class DetailStream:
 
     def read(self, levels: Sequence[int]) -> list[np.ndarray]:
         """Each scan's points at its level (float32, own frame)."""
-        return [self.levels.points(k, level) for k, level in enumerate(levels)]
+        return self.levels.at_levels(levels)
 
-    def coarse_map(self, levels: Sequence[int], poses: Sequence[Matrix]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Every scan at ``levels`` as one cloud, each in its scan colour: (points relative to the map's
-        centre, float32; colours; that centre). One message and one scene node for the whole map."""
+    def first_look(self, budget: int, poses: Sequence[Matrix]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Every scan in one cloud of at most ``budget`` points, each in its scan colour: (points relative
+        to the map's centre, float32; colours, uint8; that centre). One message and one scene node for
+        the whole map.
+
+        The scans get the levels :meth:`choose` gives for ``budget``; when even their coarsest levels are
+        over it (1,000 scans x 128 points), every scan gets an equal share as a prefix of its progressive
+        order (an even sample of the scan, :meth:`ScanLevels.samples`).
+        """
         centre = np.mean([p[:3, 3] for p in poses], axis=0)
-        clouds = self.read(levels)
+        counts = [self.levels.level_points[k][level] for k, level in enumerate(self.choose(budget, poses))]
+        if sum(counts) > budget:
+            share = max(budget // max(len(counts), 1), 1)
+            counts = [min(count, share) for count in counts]
+        clouds = self.levels.samples(counts)
         world = [
             c @ p[:3, :3].T.astype(np.float32) + (p[:3, 3] - centre).astype(np.float32)
             for c, p in zip(clouds, poses, strict=True)

@@ -20,7 +20,11 @@ from slam6d.octree import reduce_points
 # A 1280x800 view of a whole map covers ~0.5M pixels: 750k points fill it (42 % of the canvas on the
 # 77 x 100k benchmark session, against 47 % at 1.5M), at half the transfer and frame cost of 1.5M.
 DEFAULT_BUDGET = 750_000
-COARSE_BUDGET = 200_000  # the first, whole-map pass: about 0.5 s per frame for a software renderer
+COARSE_BUDGET = 200_000  # an older revision's whole map (app.view.revision_view): ~0.5 s per software frame
+# The first look at a session's whole map (one cloud, app.view.scene_stream): a software renderer draws
+# ~0.5M points per second, and the page draws it while it is still mounting the view; 100k points are
+# 100 per scan of a 1,000-scan campus, below the scans' coarsest level (taken as an even prefix).
+FIRST_LOOK_BUDGET = 100_000
 PLAYBACK_BUDGET = 10_000  # the map around the current pair while stepping plays: frames must stay cheap
 EDGE_SHADES = 10  # steps of the edge residual scale
 FLOAT16_SAFE_EXTENT = 32.0  # metres: float16 spacing stays under 1.6 cm up to here

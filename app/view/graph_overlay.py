@@ -2,23 +2,42 @@
 
 The residuals are the editor's per-edge summary (the numbers the "residuals jumped" guardrail
 compares), computed in the background for the poses shown; until they are in, edges are grey.
+
+They are computed against bounded copies of the scans, never the full ones: the first
+:data:`RESIDUAL_SAMPLE` points of each scan's levels of detail (an even sample of it,
+:mod:`slam6d.scan_levels`), reduced as the engine reduces scans. A 1,000-scan campus of 100M points
+would otherwise be read in full (~3 GB resident) just to colour its edges; the sample is ~0.2 GB,
+and the point-to-plane residual the colours show depends on the surfaces, not on the point spacing.
 """
 
 from __future__ import annotations
 
 import threading
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 
 from app.view import display
 from app.view.core import ShownScans, ViewContext
+from slam6d.relax import ScanModels
+from slam6d.scan_levels import ScanLevels
+
+RESIDUAL_SAMPLE = 8192  # points per scan the edge residuals are computed from (a prefix of its levels)
 
 
 class GraphOverlay:
-    def __init__(self, view: ViewContext, scans: ShownScans, icp_max_distance: float) -> None:
+    def __init__(
+        self,
+        view: ViewContext,
+        scans: ShownScans,
+        icp_max_distance: float,
+        levels: Callable[[], ScanLevels | None],
+    ) -> None:
         self.view = view
         self.scans = scans
+        self.levels = levels  # the scans' levels of detail, once the view has loaded them
+        self.models: ScanModels | None = None  # the scans' bounded copies the residuals are computed against
         self.edge_residuals: dict[tuple[int, int], float] = {}
         self.edge_residual_version = -1  # the pose_version edge_residuals were computed for
         self.edge_nodes: list[Any] = []  # the line nodes drawn, one per edge colour
@@ -82,8 +101,8 @@ class GraphOverlay:
     def _edge_residuals_later(self) -> None:
         """Compute the edges' residuals for the shown poses in the background, then recolour them.
 
-        The first call builds the editor's reduced scans (seconds for a large session, paid once and
-        reused by every edit), so it never holds up the map. Requests while one runs coalesce.
+        The first call reads and reduces the scans' samples (:meth:`sampled_models`; seconds for a
+        large session, paid once), so it never holds up the map. Requests while one runs coalesce.
         """
         self.edges_wanted.set()
         if self.edges_worker is not None and self.edges_worker.is_alive():
@@ -98,7 +117,7 @@ class GraphOverlay:
                 with view.lock:
                     version, poses = scans.pose_version, [p.copy() for p in scans.poses]
                 try:
-                    summary = view.editor.context.residuals(view.session_id, poses)
+                    summary = view.editor.context.residuals(view.session_id, poses, models=self.sampled_models())
                     with view.lock:
                         if view.stopped:
                             return
@@ -114,6 +133,17 @@ class GraphOverlay:
 
         self.edges_worker = threading.Thread(target=work, name=f"edge-residuals-{view.session_id}", daemon=True)
         self.edges_worker.start()
+
+    def sampled_models(self) -> ScanModels:
+        """The scans' first :data:`RESIDUAL_SAMPLE` points from their levels of detail, reduced as the
+        engine reduces scans; read once per view, from the same levels the view shows."""
+        if self.models is None:
+            levels = self.levels()
+            if levels is None:
+                raise RuntimeError("the scans' levels of detail are not loaded")
+            samples = [s.astype(np.float64) for s in levels.samples([RESIDUAL_SAMPLE] * len(levels))]
+            self.models = self.view.editor.context.reduce(self.view.session_id, samples)
+        return self.models
 
     def _edge_legend(self, known: dict[tuple[int, int], float] | None) -> None:
         low, high = (f"rgb{tuple(int(c) for c in rgb[0])}" for rgb in display.edge_colours([0, 1], 1.0))

@@ -13,7 +13,7 @@ import contextlib
 
 import httpx
 import websockets
-from fastapi import Request, WebSocket
+from fastapi import WebSocket
 from fastapi.responses import Response
 from starlette.websockets import WebSocketDisconnect
 from websockets.asyncio.client import ClientConnection
@@ -26,9 +26,14 @@ from app.view_roles import may_send, message_type
 _PASSED_HEADERS = ("content-type", "content-encoding", "cache-control", "etag", "last-modified")
 
 
-async def forward_file(client: httpx.AsyncClient, port: int, path: str, request: Request) -> Response:
-    """A file of the viser client (its page, scripts, fonts) from the view's internal server."""
-    headers = {"Accept-Encoding": request.headers.get("accept-encoding", "identity")}
+async def forward_file(client: httpx.AsyncClient, port: int, path: str) -> Response:
+    """A file of the viser client (its page, scripts, fonts) from the view's internal server.
+
+    Asked for uncompressed: viser gzips a file afresh in every view's server (each session's view
+    is one), and its client page (818 KB, mostly already compressed) shrinks by 18 % for ~0.1 s of
+    compression at level 9 on the path to the first view, plus the browser's unpacking.
+    """
+    headers = {"Accept-Encoding": "identity"}
     upstream = await client.send(
         client.build_request("GET", f"http://127.0.0.1:{port}/{path}", headers=headers), stream=True
     )

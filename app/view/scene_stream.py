@@ -89,9 +89,9 @@ class SceneStream:
         """(Re)send every scan at the levels of detail the camera calls for within the budget
         (:mod:`app.view.detail_stream`): the only time every scan's points go over the wire.
 
-        On the first pass, when the budget is above :data:`display.COARSE_BUDGET`, the whole map
-        first goes at the levels that fit the coarse budget as *one* point cloud in world
-        coordinates (:meth:`DetailStream.coarse_map`), so it is on screen after one message and one
+        On the first pass, when the budget is above :data:`display.FIRST_LOOK_BUDGET`, the whole map
+        first goes within that budget as *one* point cloud in world coordinates
+        (:meth:`DetailStream.first_look`), so it is on screen after one message and one
         cheap frame (without a GPU a frame costs ~2 µs per point; and each scene node costs the
         server ~2 ms to make, seconds for a thousand scans). The scans' own nodes at the full budget
         replace it in one atomic batch, so a browser draws the map once per pass, complete, rather
@@ -102,15 +102,18 @@ class SceneStream:
         budget = int(view.controls.budget.value)
         self.coarse_points = 0
         first = not scans.nodes
-        if first and budget > display.COARSE_BUDGET and detail.total_points > display.COARSE_BUDGET:
+        if first and budget > display.FIRST_LOOK_BUDGET and detail.total_points > display.FIRST_LOOK_BUDGET:
             poses = view.state.session.poses()
-            points, colours, centre = detail.coarse_map(detail.choose(display.COARSE_BUDGET, poses), poses)
+            points, colours, centre = detail.first_look(display.FIRST_LOOK_BUDGET, poses)
             self.coarse_node = view.server.scene.add_point_cloud(
                 "/coarse_map",
                 points,
                 colours,
                 point_size=float(view.controls.point_size.value),
                 point_shading="flat",
+                # half the bytes of float32; relative to the map's centre a km-scale map quantises to
+                # 0.5-1 m between 0.5 and 2 km from it, under a pixel of a view that shows all of it
+                precision="float16",
                 position=centre,
             )
             coarse_sent = time.monotonic()

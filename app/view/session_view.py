@@ -59,7 +59,12 @@ class SessionViewer(ViewContext):
         self.colouring = Colouring(self, self.scans)
         self.playback = Playback(self, self.scans, self.colouring)
         icp_max_distance = float(pipeline_config(self.state.session.config.engine).icp.max_distance)
-        self.graph = GraphOverlay(self, self.scans, icp_max_distance)
+        self.graph = GraphOverlay(
+            self,
+            self.scans,
+            icp_max_distance,
+            lambda: None if self.stream.detail is None else self.stream.detail.levels,
+        )
         self.stream = SceneStream(self, self.scans, self.colouring, self.playback.show_focus, self.graph.draw)
         self.picking = Picking(self, self.scans)
         self.stepper: Stepper | None = None
