@@ -187,20 +187,21 @@ def test_handheld_hall_walk_without_odometry_searches_when_a_fit_pairs_far_fewer
 
 
 def test_car_easing_out_of_a_turn_without_odometry_registers_from_the_repeated_turn(tmp_path) -> None:  # type: ignore[no-untyped-def]
-    """The robustness matrix's outdoor OS1-64 session without odometry, seed 2 (read back from the
-    files as ``slam6d run`` reads them): the car turns 13°, 9°, then 5° between scans, so the
-    constant-velocity prediction starts scans 4 and 5 about 4° off in yaw. ICP at the sequential max
-    distance alone settled 3-5° off there, pairing a third of the data where right fits pair over
-    half (above the fixed 30 % bar, so nothing searched), and every later prediction inherited the
-    wrong motion (ATE 42 cm on 10 scans). A fit pairing clearly fewer than the recent ones is now
-    redone coarse to fine from the prediction, and every step ends within ICP's accuracy."""
+    """An outdoor OS1-64 car session without odometry (seed 3, read back from the files as ``slam6d
+    run`` reads them) whose turn eases between scans 2 and 3, so the constant-velocity prediction
+    starts scan 3 several degrees off in yaw. ICP at the sequential max distance alone settles 26 cm /
+    6° off there, pairing 0.38 of the data where right fits pair 0.6 (above the fixed 30 % bar, so
+    nothing searched), and the next predictions inherit the wrong motion. (The matrix's seed 2 showed
+    the same at scan 4, 42 cm ATE on 10 scans, until the ring-aware normals let its first fit find the
+    right basin.) A fit pairing clearly fewer than the recent ones is now redone coarse to fine from
+    the prediction, and every step ends within ICP's accuracy."""
     from slam6d.geometry import UOS
     from slam6d.io.poses import read_kitti_poses
     from slam6d.io.registry import read_sequence
     from slam6d.pipeline import Pipeline, PipelineConfig
     from slam6d.simulate import SimulationConfig, simulate_session
 
-    config = SimulationConfig(seed=2, scans=10, sensor="os1-64", world="outdoor", odometry=False)
+    config = SimulationConfig(seed=3, scans=10, sensor="os1-64", world="outdoor", odometry=False)
     session = simulate_session(tmp_path, config)
     truth = [UOS.pose_to_canonical(p) for p in read_kitti_poses(session.ground_truth_file)][:7]
     steps = [invert(a) @ b for a, b in itertools.pairwise(truth)]
@@ -213,4 +214,4 @@ def test_car_easing_out_of_a_turn_without_odometry_registers_from_the_repeated_t
         metres, radians = pose_difference(invert(pipeline.poses[k - 1]) @ pipeline.poses[k], steps[k - 1])
         assert metres < 0.02 and math.degrees(radians) < 0.1, (k, metres, math.degrees(radians))
         assert pipeline.summaries[k].fitness > 0.45, k  # right fits pair about half, the wrong ones a third
-    assert "coarse" in pipeline.summaries[4].starts_tried
+    assert "coarse" in pipeline.summaries[3].starts_tried
