@@ -34,6 +34,20 @@ def make_pose(rotation: ArrayLike, translation: ArrayLike) -> Matrix:
     return pose
 
 
+def nearest_rotation(matrix: ArrayLike) -> Matrix:
+    """The rotation closest to a 3x3 ``matrix``, or to each of a stack of them (the orthogonal polar
+    factor, from the SVD).
+
+    Poses are composed again and again (a loop's correction is applied to every later scan, the
+    next loop's correction is computed from those poses, :func:`invert` transposes), so rounding
+    that leaves a rotation a little off orthonormal is carried into every later product instead of
+    being averaged out; whatever composes corrections in a chain puts its results back on SO(3)."""
+    u, _, vt = np.linalg.svd(np.asarray(matrix, dtype=np.float64))
+    sign = np.sign(np.linalg.det(u @ vt))
+    u[..., :, 2] *= np.where(sign == 0, 1.0, sign)[..., None]  # no reflection
+    return np.asarray(u @ vt)
+
+
 def invert(pose: Matrix) -> Matrix:
     """Inverse of a rigid transform, exact (transpose) rather than a general matrix inverse."""
     rotation = pose[:3, :3].T

@@ -53,6 +53,7 @@ from slam6d.geometry import (
     Matrix,
     invert,
     make_pose,
+    nearest_rotation,
     path_lengths,
     quaternion_to_rotation,
     rotation_to_quaternion,
@@ -513,6 +514,10 @@ def diffuse_loop_correction(poses: Sequence[Matrix], i: int, j: int, correction:
         out[k] = make_pose(turns[n] @ poses[k][:3, :3], chained[n] + fractions[n] * missing)
     for k in range(j + 1, len(poses)):  # after the loop: the full correction
         out[k] = correction @ poses[k]
+    if i + 1 < len(out):  # back on SO(3): later loops compose with these (see nearest_rotation)
+        moved = np.stack(out[i + 1 :])
+        moved[:, :3, :3] = nearest_rotation(moved[:, :3, :3])
+        out[i + 1 :] = list(moved)
     return out
 
 

@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 
 from slam6d.errors import InvalidValueError, Slam6dError
-from slam6d.geometry import Matrix, check_rigid
+from slam6d.geometry import Matrix, check_rigid, nearest_rotation
 from slam6d.journal import JournalEntry, check_journal_file
 from slam6d.session import JOURNAL_FILE, Session
 
@@ -108,10 +108,8 @@ def _nearest_rigid(pose: Matrix, fallback: Matrix) -> Matrix:
     matrix = np.asarray(pose, dtype=np.float64)
     if not np.isfinite(matrix).all() or np.abs(matrix[:3, 3]).max() > 1e7:
         return fallback
-    u, _, vt = np.linalg.svd(matrix[:3, :3])
-    rotation = u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt)) or 1.0]) @ vt
     out = np.eye(4)
-    out[:3, :3] = rotation
+    out[:3, :3] = nearest_rotation(matrix[:3, :3])
     out[:3, 3] = matrix[:3, 3]
     try:
         return check_rigid(out)
