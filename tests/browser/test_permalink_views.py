@@ -11,6 +11,7 @@ from app.view import display
 from app.view.panels.edges import EdgesPanel
 from tests.browser.conftest import viewer_frame
 from tests.browser.test_editing import open_folder
+from tests.browser.test_picking import aim_at_scan, lift_scan
 from tests.browser.test_render_panel import choose_option
 from tests.browser.test_sharing import _address, _view_state, _wait
 from tests.browser.test_workbench import wait_for_map
@@ -81,10 +82,7 @@ def test_a_viewer_link_with_another_colour_mode_is_drawn_in_it_while_the_editor_
     assert live.as_dict()["colour"] == "scan"
 
     # a click on scan 3 in vic's own view selects it there, and vic's address carries it
-    target = own.local[3].astype(np.float64).mean(axis=0) @ pose[:3, :3].T + pose[:3, 3]
-    person.client.camera.position = target + np.array([-25.0, -25.0, 15.0])
-    person.client.camera.look_at = target
-    _wait(lambda: np.allclose(person.client.camera.look_at, target, atol=1e-3), what="vic's camera")
+    aim_at_scan(person.client, own.local[3], pose)
     canvas = viewer_frame(vic).locator("canvas[data-engine]")
     box = canvas.bounding_box()
     assert box is not None
@@ -125,17 +123,11 @@ def test_a_scan_picked_in_the_3d_view_goes_into_the_address_and_a_fresh_browser_
     assert wait_for_map(page) >= 0.01
     viewer = server.app.state.viewers.get("corridor")
     edit = next(p for p in viewer.panels if isinstance(p, EdgesPanel))
-    # The corridor scans overlap; lift scan 3 by 30 m (as drawn) so that it alone is under the view's centre.
-    poses = [p.copy() for p in viewer.scans.poses]
-    poses[3][2, 3] += 30.0
-    viewer.set_poses(poses)
-    target = viewer.scans.local[3].astype(np.float64).mean(axis=0) @ poses[3][:3, :3].T + poses[3][:3, 3]
+    lift_scan(viewer, 3)
     key = _view_state(page)["key"]
     person = _wait(lambda: presence_of(viewer).person(key), what="the page's 3D view")
     client = person.client
-    client.camera.position = target + np.array([-25.0, -25.0, 15.0])
-    client.camera.look_at = target  # the look-at point is drawn at the canvas centre
-    _wait(lambda: np.allclose(client.camera.look_at, target, atol=1e-3), what="the camera")
+    aim_at_scan(client, viewer.scans.local[3], viewer.scans.poses[3])
 
     canvas = viewer_frame(page).locator("canvas[data-engine]")
     box = canvas.bounding_box()

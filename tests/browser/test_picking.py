@@ -13,6 +13,23 @@ from tests.browser.test_workbench import open_session, wait_for_map
 pytestmark = pytest.mark.browser
 
 
+def lift_scan(viewer, scan: int) -> None:  # type: ignore[no-untyped-def]
+    """Lift ``scan`` 30 m as drawn: the corridor scans overlap, and lifted it alone is under a
+    camera aimed at it (:func:`aim_at_scan`), so a click at the canvas centre picks it."""
+    poses = [p.copy() for p in viewer.scans.poses]
+    poses[scan][2, 3] += 30.0
+    viewer.set_poses(poses)
+
+
+def aim_at_scan(client, local_points: np.ndarray, pose: np.ndarray) -> None:  # type: ignore[no-untyped-def]
+    """Put ``client``'s camera 25 m off the scan's centre looking at it (the look-at point is drawn at
+    the canvas centre) and wait until the browser's camera is there."""
+    target = np.asarray(local_points, dtype=np.float64).mean(axis=0) @ pose[:3, :3].T + pose[:3, 3]
+    client.camera.position = target + np.array([-25.0, -25.0, 15.0])  # (moving it carries the look-at along)
+    client.camera.look_at = target
+    wait_until(lambda: np.allclose(client.camera.look_at, target, atol=1e-3), 10, "the camera did not move")
+
+
 def test_click_a_scan_in_the_view_selects_it_in_the_edit_panel(
     corridor_sessions, live_server, new_browser, artifacts_dir
 ):
@@ -22,16 +39,10 @@ def test_click_a_scan_in_the_view_selects_it_in_the_edit_panel(
     assert wait_for_map(page) >= 0.01
     viewer = server.app.state.viewers.get("corridor")
     edit = next(p for p in viewer.panels if isinstance(p, EdgesPanel))
-    # The corridor scans overlap; lift scan 3 by 30 m so that it alone is under the view's centre.
-    poses = [p.copy() for p in viewer.scans.poses]
-    poses[3][2, 3] += 30.0
-    viewer.set_poses(poses)
-    target = viewer.scans.local[3].astype(np.float64).mean(axis=0) @ poses[3][:3, :3].T + poses[3][:3, 3]
+    lift_scan(viewer, 3)
     wait_until(lambda: len(viewer.server.get_clients()) == 1, 10, "the 3D view did not connect")
     client = next(iter(viewer.server.get_clients().values()))
-    client.camera.position = target + np.array([-25.0, -25.0, 15.0])  # (moving it carries the look-at along)
-    client.camera.look_at = target  # the look-at point is drawn at the canvas centre
-    wait_until(lambda: np.allclose(client.camera.look_at, target, atol=1e-3), 10, "the camera did not move")
+    aim_at_scan(client, viewer.scans.local[3], viewer.scans.poses[3])
 
     frame = viewer_frame(page)
     canvas = frame.locator("canvas[data-engine]")  # the 3D view (three.js), not an overlay
