@@ -31,6 +31,8 @@ from app.tokens import Grant
 FRUSTUM_SCALE = 0.4  # metres from the eye to the frustum's far rectangle
 FRUSTUM_COLOUR = (255, 138, 31)  # the pages' accent
 REDRAW_INTERVAL = 0.1  # seconds between redraws of one browser's frustum for the others
+FOV_HOLD_S = 5.0  # how long after a placement a browser's reported field of view is held to the placed one
+FOV_RESENDS = 3  # at most this many re-sends per placement (a client that never takes it is not pestered)
 
 
 @dataclass
@@ -42,6 +44,7 @@ class Person:
     last_active: float = field(default_factory=time.time)
     follows: str | None = None
     last_drawn: float = 0.0
+    placed_fov: tuple[float, float, int] | None = None  # (radians, hold until, re-sends left)
 
     def camera(self) -> dict[str, Any]:
         camera = self.client.camera
@@ -125,6 +128,7 @@ class Presence:
     def _moved(self, person: Person) -> None:
         now = time.time()
         person.last_active = now
+        self._hold_fov(person, now)
         with self.lock:
             others = [p for p in self.people.values() if p is not person]
             redraw = now - person.last_drawn >= REDRAW_INTERVAL
@@ -191,6 +195,28 @@ class Presence:
         if person is None:
             raise LookupError(f"no browser '{key}' on this view")
         _set_camera(person.client, camera)
+        person.placed_fov = (float(np.radians(camera["fov_deg"])), time.time() + FOV_HOLD_S, FOV_RESENDS)
+
+    @staticmethod
+    def _hold_fov(person: Person, now: float) -> None:
+        """Put a placed field of view back if the browser's report says it was lost.
+
+        viser's client applies a field of view by a message of its own, and a camera report it
+        made before (with its default 75°) can reach the server after it: the server then believes
+        the old field of view, and so do the address and Copy link built from it. Nobody changes
+        the field of view by hand in the 3D view, so for a few seconds after a placement a report
+        that differs is a stale one, and the placed value is sent again.
+        """
+        placed = person.placed_fov
+        if placed is None:
+            return
+        fov, until, left = placed
+        if now > until or left <= 0:
+            person.placed_fov = None
+            return
+        if abs(float(person.client.camera.fov) - fov) > 1e-4:
+            person.placed_fov = (fov, until, left - 1)
+            person.client.camera.fov = fov
 
 
 def _set_camera(client: Any, camera: dict[str, Any]) -> None:
