@@ -131,7 +131,10 @@ def create_app(
         import httpx
 
         from app.routes import views
+        from app.view.client_files import prepare_in_background
         from app.view.registry import ViewerRegistry
+
+        prepare_in_background()  # the 3D client's files, decoded and compressed once, off the request path
         from app.view.revision_view import RevisionViews
 
         registry = ViewerRegistry(workbench)
@@ -155,7 +158,7 @@ def create_app(
         link = {k: v for k, v in request.query_params.items() if k in LINK_PARAMETERS}
         resolve_link(state, editor_for(workbench), parse_link(link))
         if viewers:  # start reading scans while the browser still loads the page and the 3D client
-            app.state.viewers.get(session_id)
+            app.state.viewers.start(session_id)
         return FileResponse(pages / "session.html")
 
     @app.get("/sessions", include_in_schema=False)
