@@ -22,6 +22,7 @@ from fastapi.testclient import TestClient
 
 from app.routes import views
 from app.server import create_app
+from app.tokens import Role
 from app.view.client_files import ViserClient, accepts_gzip, base88_decode, installed_client
 from tests.session_fixtures import corridor_session
 
@@ -144,3 +145,14 @@ def test_a_build_whose_payload_does_not_decode_is_not_split() -> None:
     broken = re.sub(rb'data-p="[^"]{20}', b'data-p="' + b"!" * 20, VISER_PAGE, count=1)
     assert not ViserClient(broken).split
     assert ViserClient(gzip.compress(b"not a page")).files == {}
+
+
+def test_on_a_shared_server_any_sessions_token_fetches_the_client_and_no_token_does_not(tmp_path: Path) -> None:
+    root = tmp_path / "sessions"
+    corridor_session(root, scans=3, points=400, engine={"voxel_size": 0.2})
+    with TestClient(create_app(root, require_token=True), base_url="http://127.0.0.1") as shared:
+        secret, _ = shared.app.state.tokens.issue(Role.viewer, "corridor", name="vic")  # type: ignore[attr-defined]
+        script = f"/viser-client/{installed_client().digest}/app.js"
+        assert shared.get(script).status_code == 401
+        fetched = shared.get(script, headers={"Authorization": f"Bearer {secret}"})
+        assert fetched.status_code == 200 and fetched.content == installed_client().files["app.js"].body

@@ -60,9 +60,12 @@ async def viser_files(session_id: str, path: str, request: Request) -> Response:
     return await forward_file(forwarder, port, path)
 
 
-@router.get(CLIENT_PREFIX + "/{digest}/{name}", include_in_schema=False)
+@router.get(
+    CLIENT_PREFIX + "/{digest}/{name}", include_in_schema=False, openapi_extra=requires(Role.viewer, any_session=True)
+)
 async def viser_client_file(digest: str, name: str, request: Request) -> Response:
-    """A file of the 3D client (script, styles, decoder): immutable under its build's digest, gzip when accepted."""
+    """A file of the 3D client (script, styles, decoder): immutable under its build's digest, gzip when accepted.
+    The same for every session, so a token made for one session fetches it too."""
     client = await run_in_threadpool(installed_client)
     found = client.files.get(name)
     if found is None or digest != client.digest:
