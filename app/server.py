@@ -1,8 +1,9 @@
 """The FastAPI application: pages, REST, and the 3D views of viser, all behind one port.
 
 Viser runs its own websocket server per session on an internal localhost port; this app forwards
-``/viser/{session}/`` (the viser client page) and the websocket ``/viser/{session}`` to it, so a
-user shares one URL and only one port is opened. The pages and their scripts are package data
+the websocket ``/viser/{session}`` to it and serves viser's browser client itself (``/viser/{session}/``
+and the cacheable ``/viser-client/`` files, :mod:`app.view.client_files`), so a user shares one URL
+and only one port is opened. The pages and their scripts are package data
 (``app/static``), found through :mod:`importlib.resources`, so an installed wheel serves them from
 any working directory.
 """
