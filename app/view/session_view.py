@@ -84,10 +84,11 @@ class SessionViewer(ViewContext):
         (just before the full pass), so the batch a browser first draws the map from carries only the
         view's own controls: the panels' ~70 GUI elements cost a software-rendering browser ~0.15 s of
         its main thread, which then comes after the map is on screen."""
-        if self.fly_through is not None:
-            return
-        self.fly_through = FlyThroughPanel(self)  # the "Fly-through" folder
-        self.panels = build_panels(self)  # loops, graph edits, octree guess, replay (app/view/panels)
+        with self.lock:  # (a view stopped while it loaded gets none: its server would drop them)
+            if self.fly_through is not None or self.stopped:
+                return
+            self.fly_through = FlyThroughPanel(self)  # the "Fly-through" folder
+            self.panels = build_panels(self)  # loops, graph edits, octree guess, replay (app/view/panels)
 
     def _wire_controls(self) -> None:
         c = self.controls
