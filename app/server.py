@@ -1,8 +1,9 @@
 """The FastAPI application: pages, REST, and the 3D views of viser, all behind one port.
 
 Viser runs its own websocket server per session on an internal localhost port; this app forwards
-``/viser/{session}/`` (the viser client page) and the websocket ``/viser/{session}`` to it, so a
-user shares one URL and only one port is opened. The pages and their scripts are package data
+the websocket ``/viser/{session}`` to it and serves viser's browser client itself (``/viser/{session}/``
+and the cacheable ``/viser-client/`` files, :mod:`app.view.client_files`), so a user shares one URL
+and only one port is opened. The pages and their scripts are package data
 (``app/static``), found through :mod:`importlib.resources`, so an installed wheel serves them from
 any working directory.
 """
@@ -131,7 +132,10 @@ def create_app(
         import httpx
 
         from app.routes import views
+        from app.view.client_files import prepare_in_background
         from app.view.registry import ViewerRegistry
+
+        prepare_in_background()  # the 3D client's files, decoded and compressed once, off the request path
         from app.view.revision_view import RevisionViews
 
         registry = ViewerRegistry(workbench)
@@ -155,7 +159,7 @@ def create_app(
         link = {k: v for k, v in request.query_params.items() if k in LINK_PARAMETERS}
         resolve_link(state, editor_for(workbench), parse_link(link))
         if viewers:  # start reading scans while the browser still loads the page and the 3D client
-            app.state.viewers.get(session_id)
+            app.state.viewers.start(session_id)
         return FileResponse(pages / "session.html")
 
     @app.get("/sessions", include_in_schema=False)

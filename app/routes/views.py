@@ -25,6 +25,7 @@ from app.guard import OPEN_GRANT, requires
 from app.permalink import describe_selection, parse_selection
 from app.tokens import Role
 from app.validation import RevisionQuery
+from app.view.client_files import CLIENT_PREFIX, installed_client
 from app.view.presence import Person, Presence, presence_of
 from app.view.proxy import forward_file, forward_socket, open_upstream
 from app.view.registry import ViewerRegistry
@@ -47,9 +48,29 @@ async def viser_root(session_id: str) -> RedirectResponse:
 
 @router.get("/viser/{session_id}/{path:path}", include_in_schema=False)
 async def viser_files(session_id: str, path: str, request: Request) -> Response:
+    """The 3D view's client page. Split into cacheable files (:mod:`app.view.client_files`) it needs no
+    view to answer: the view is started meanwhile, and the page's websocket waits for it."""
+    client = await run_in_threadpool(installed_client)  # (decoded as the server started: at once)
+    if path == "" and client.split:
+        registry: ViewerRegistry = request.app.state.viewers
+        await run_in_threadpool(registry.start, session_id)
+        return client.page_response()
     port = await _viewer_port(request.app.state.viewers, session_id)
-    client: httpx.AsyncClient = request.app.state.viser_client
-    return await forward_file(client, port, path)
+    forwarder: httpx.AsyncClient = request.app.state.viser_client
+    return await forward_file(forwarder, port, path)
+
+
+@router.get(
+    CLIENT_PREFIX + "/{digest}/{name}", include_in_schema=False, openapi_extra=requires(Role.viewer, any_session=True)
+)
+async def viser_client_file(digest: str, name: str, request: Request) -> Response:
+    """A file of the 3D client (script, styles, decoder): immutable under its build's digest, gzip when accepted.
+    The same for every session, so a token made for one session fetches it too."""
+    client = await run_in_threadpool(installed_client)
+    found = client.files.get(name)
+    if found is None or digest != client.digest:
+        return Response(f"no client file {digest}/{name} in this server's viser build", status_code=404)
+    return found.response(request)
 
 
 @router.websocket("/viser/{session_id}")

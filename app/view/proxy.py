@@ -27,7 +27,8 @@ _PASSED_HEADERS = ("content-type", "content-encoding", "cache-control", "etag", 
 
 
 async def forward_file(client: httpx.AsyncClient, port: int, path: str) -> Response:
-    """A file of the viser client (its page, scripts, fonts) from the view's internal server.
+    """A file of the viser client from the view's internal server: what the workbench does not serve
+    itself (:mod:`app.view.client_files` serves the client of a known build without any view).
 
     Asked for uncompressed: viser gzips a file afresh in every view's server (each session's view
     is one), and its client page (818 KB, mostly already compressed) shrinks by 18 % for ~0.1 s of

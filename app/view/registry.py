@@ -11,6 +11,7 @@ with a view is in use: the memory budget does not release its scans.
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 from typing import Any
@@ -19,6 +20,8 @@ from app.view.comment_labels import show_comments, show_when_ready
 from app.view.presence import presence_of
 from app.view.session_view import SessionViewer
 from app.workbench import Workbench
+
+log = logging.getLogger(__name__)
 
 
 class ViewerRegistry:
@@ -48,6 +51,24 @@ class ViewerRegistry:
             elif not viewer.server.get_clients():
                 self._idle_since[session_id] = time.monotonic()  # asked for again: its grace starts anew
             return viewer
+
+    def start(self, session_id: str) -> None:
+        """Start the session's view in the background, for a page about to ask for it: the page is
+        answered at once and its 3D client loads while the view starts (the view's websocket waits for
+        it in :meth:`get`). Raises :class:`~app.errors.UnknownSessionError` for an unknown session."""
+        self.workbench.state(session_id)
+        if session_id in self._viewers:
+            self.get(session_id)  # asked for again: its grace starts anew
+            return
+        threading.Thread(
+            target=self._start_quietly, args=(session_id,), name=f"viewer-start-{session_id}", daemon=True
+        ).start()
+
+    def _start_quietly(self, session_id: str) -> None:
+        try:
+            self.get(session_id)
+        except Exception:  # the page's websocket asks again and is answered the error
+            log.exception("starting the 3D view of session %s failed", session_id)
 
     def _watched(self, session_id: str) -> None:
         """A browser is on the view: no grace period runs."""

@@ -35,12 +35,14 @@ class SceneStream:
         colouring: Colouring,
         show_focus: Callable[[list[int]], None],
         draw_graph: Callable[[], None],
+        before_full_pass: Callable[[], None] = lambda: None,
     ) -> None:
         self.view = view
         self.scans = scans
         self.colouring = colouring
         self.show_focus = show_focus  # playback's: a re-sent map keeps showing the current pair in full
         self.draw_graph = draw_graph  # the graph overlay follows the scans
+        self.before_full_pass = before_full_pass  # once, after the first look went out: the view's secondary panels
         self.shown_revision = -1  # the journal revision whose poses are shown
         self.coarse_points = 0  # points of the coarse first pass (0: the budget was sent in one pass)
         self.pose_updates = 0
@@ -123,6 +125,8 @@ class SceneStream:
                 f"({self.coarse_points:,} points), loading full detail…"
             )
             self._let_browsers_draw_coarse(coarse_sent)
+        if first:
+            self.before_full_pass()
         self._show_levels(detail.choose(budget, view.state.session.poses()), replace=True)
         self.draw_graph()
         show_status(view, scans)

@@ -30,7 +30,7 @@ from app.view.colouring import Colouring
 from app.view.core import ShownScans, ViewContext, show_status
 from app.view.graph_overlay import GraphOverlay
 from app.view.names import BrowserNames
-from app.view.panels import build_panels
+from app.view.panels import Panel, build_panels
 from app.view.panels.fly_through import FlyThroughPanel
 from app.view.panels.progress import show_job_progress
 from app.view.picking import Picking
@@ -65,16 +65,30 @@ class SessionViewer(ViewContext):
             icp_max_distance,
             lambda: None if self.stream.detail is None else self.stream.detail.levels,
         )
-        self.stream = SceneStream(self, self.scans, self.colouring, self.playback.show_focus, self.graph.draw)
+        self.fly_through: FlyThroughPanel | None = None  # the panels beyond viewing and registration,
+        self.panels: list[Panel] = []  # added once the first look is out (_add_panels)
+        self.stream = SceneStream(
+            self, self.scans, self.colouring, self.playback.show_focus, self.graph.draw, self._add_panels
+        )
         self.picking = Picking(self, self.scans)
         self.stepper: Stepper | None = None
         self.names = BrowserNames()  # who is behind each browser: the name typed in the page header
         self._wire_controls()
-        self.fly_through = FlyThroughPanel(self)  # the "Fly-through" folder
-        self.panels = build_panels(self)  # loops, graph edits, octree guess, replay (app/view/panels)
         server.on_client_connect(self._on_connect)
         server.on_client_disconnect(lambda client: self.names.client_left(client.client_id))
         threading.Thread(target=self.stream.load, name=f"viewer-load-{session_id}", daemon=True).start()
+
+    def _add_panels(self) -> None:
+        """The folders beyond viewing and registration: fly-through, loops, graph edits, octree guess,
+        replay, components (:mod:`app.view.panels`). Added after the first look at the map went out
+        (just before the full pass), so the batch a browser first draws the map from carries only the
+        view's own controls: the panels' ~70 GUI elements cost a software-rendering browser ~0.15 s of
+        its main thread, which then comes after the map is on screen."""
+        with self.lock:  # (a view stopped while it loaded gets none: its server would drop them)
+            if self.fly_through is not None or self.stopped:
+                return
+            self.fly_through = FlyThroughPanel(self)  # the "Fly-through" folder
+            self.panels = build_panels(self)  # loops, graph edits, octree guess, replay (app/view/panels)
 
     def _wire_controls(self) -> None:
         c = self.controls

@@ -56,6 +56,31 @@ def test_corridor_map_is_drawn_through_the_single_port(corridor_sessions, live_s
     assert events == f"ws://127.0.0.1:{server.port}/api/sessions/corridor/events"
 
 
+def client_script(page):  # type: ignore[no-untyped-def]
+    """How the 3D view's page got viser's client script: its resource timing entry (bytes on the wire and unpacked)."""
+    frame = page.frame(url=re.compile(r"/viser/"))
+    entries = frame.evaluate("performance.getEntriesByType('resource').map((e) => e.toJSON())")
+    scripts = [e for e in entries if re.search(r"/viser-client/[0-9a-f]{16}/app\.js$", e["name"])]
+    assert len(scripts) == 1, [e["name"] for e in entries]
+    return scripts[0]
+
+
+def test_the_3d_client_comes_gzipped_once_and_from_the_browsers_cache_after(
+    corridor_sessions, live_server, new_browser
+):
+    server = live_server(corridor_sessions)
+    page = new_browser()
+    open_session(page, server, "corridor")
+    assert wait_for_map(page) >= 0.01
+    first = client_script(page)
+    assert first["transferSize"] > 0 and first["encodedBodySize"] < 0.4 * first["decodedBodySize"]  # gzip
+    page.goto("about:blank")
+    open_session(page, server, "corridor")  # the session again: the script is not asked for again
+    assert wait_for_map(page) >= 0.01
+    again = client_script(page)
+    assert again["transferSize"] == 0 and again["decodedBodySize"] == first["decodedBodySize"]
+
+
 def test_second_browser_sees_the_first_ones_edit(corridor_sessions, live_server, new_browser, artifacts_dir):
     from app.view.presence import presence_of
 
