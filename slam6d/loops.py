@@ -46,7 +46,6 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial import cKDTree
 
 from slam6d.errors import Cancelled, RegistrationError
 from slam6d.geometry import (
@@ -63,6 +62,7 @@ from slam6d.geometry import (
 from slam6d.icp import ICPConfig, ICPResult, icp
 from slam6d.initial_guess import GuessResult, OctreeSearchConfig, config_for, octree_guess
 from slam6d.model import ModelIndex
+from slam6d.nn import build_index
 from slam6d.octree import Occupancy, Octree
 from slam6d.pair import coarse_to_fine
 from slam6d.relax import ScanModels
@@ -191,14 +191,14 @@ class LoopCandidates:
         self.radius = config.radius_fraction * max_range
         self.positions = np.array([p[:3, 3] for p in self.poses]).reshape(-1, 3)
         self.travelled = path_lengths(self.poses) if self.poses else np.zeros(0)
-        self._tree = cKDTree(self.positions) if len(self.positions) else None
+        self._tree = build_index(self.positions) if len(self.positions) else None
 
     def of(self, j: int) -> list[LoopHypothesis]:
         """Earlier scans near scan ``j`` in space and far from it along the path, nearest first."""
         if self._tree is None:
             return []
         cfg = self.config
-        near = np.asarray(self._tree.query_ball_point(self.positions[j], self.radius), dtype=np.int64)
+        near = self._tree.within(self.positions[j], self.radius)
         older = near[near <= j - cfg.min_index_gap]
         dist = np.linalg.norm(self.positions[older] - self.positions[j], axis=1)
         path = self.travelled[j] - self.travelled[older]
