@@ -34,9 +34,16 @@ def _writable(directory: Path) -> bool:
     return False
 
 
-def numba_user_cache(environ: Mapping[str, str]) -> Path:
-    """numba's user-wide cache directory on POSIX systems (its vendored ``appdirs``' rule)."""
-    base = environ.get("XDG_CACHE_HOME") or str(Path(environ.get("HOME") or Path.home()) / ".cache")
+def numba_user_cache(environ: Mapping[str, str]) -> Path | None:
+    """numba's user-wide cache directory on POSIX systems (its vendored ``appdirs``' rule), or
+    ``None`` for a user without a home (no ``HOME`` and no entry in the password database)."""
+    base = environ.get("XDG_CACHE_HOME")
+    if not base:
+        try:
+            home = environ.get("HOME") or str(Path.home())
+        except RuntimeError:  # Path.home() when it cannot determine one
+            return None
+        base = str(Path(home) / ".cache")
     return Path(base).expanduser() / "numba"
 
 
@@ -45,7 +52,10 @@ def kernel_cache_dir(environ: Mapping[str, str] = os.environ, package_cache: Pat
     works (``NUMBA_CACHE_DIR`` set, the package's ``__pycache__`` or numba's user cache writable)."""
     if environ.get("NUMBA_CACHE_DIR"):
         return None
-    if _writable(package_cache) or _writable(numba_user_cache(environ)):
+    if _writable(package_cache):
+        return None
+    user_cache = numba_user_cache(environ)
+    if user_cache is not None and _writable(user_cache):
         return None
     import tempfile
 
