@@ -148,7 +148,7 @@ class RadiusIndex:
     (two binary searches) and keeps the points of it inside the ball. On trajectories (a random walk
     of 1,000-10,000 positions, balls of 40-2,000 points) that measured within 1.7x of scipy's cKDTree
     ball query and keeps scipy.spatial, with the scipy.sparse and scipy.special it imports, out of the
-    engine: ~0.13 s of every ``slam6d run``'s start-up.
+    engine: 0.1-0.13 s of CPU in every ``slam6d run``'s start-up.
     """
 
     def __init__(self, points: FloatArray) -> None:
