@@ -3,7 +3,7 @@
 After sequential matching the trajectory has drifted; when the robot comes back near an earlier
 place, the scans there overlap although they are far apart along the path. Hypotheses come from
 the estimated poses alone (two scans closer than a fraction of the laser's range, found through a
-kd-tree over the scan positions, far apart along the path), so no scan is ever matched against
+radius index over the scan positions, far apart along the path), so no scan is ever matched against
 every earlier one.
 
 Each hypothesis starts where the drifted poses put scan j relative to scan i, and that start is
@@ -46,7 +46,6 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial import cKDTree
 
 from slam6d.errors import Cancelled, RegistrationError
 from slam6d.geometry import (
@@ -63,6 +62,7 @@ from slam6d.geometry import (
 from slam6d.icp import ICPConfig, ICPResult, icp
 from slam6d.initial_guess import GuessResult, OctreeSearchConfig, config_for, octree_guess
 from slam6d.model import ModelIndex
+from slam6d.nn import RadiusIndex
 from slam6d.octree import Occupancy, Octree
 from slam6d.pair import coarse_to_fine
 from slam6d.relax import ScanModels
@@ -176,11 +176,12 @@ class LoopConfig:
 
 
 class LoopCandidates:
-    """Which earlier scans may close a loop with a given scan, through a kd-tree over the positions.
+    """Which earlier scans may close a loop with a given scan, through a :class:`~slam6d.nn.RadiusIndex`
+    over the positions.
 
     Built once per set of poses (the pipeline rebuilds it after each closing, which moves the
-    poses): each query touches only the scans within reach instead of sweeping every earlier
-    position, so finding the candidates of n scans costs n log n, not n².
+    poses): each query touches only the scans in the slab within reach instead of computing the
+    distance to every earlier position.
     """
 
     def __init__(self, poses: Sequence[Matrix], max_range: float, config: LoopConfig = LoopConfig()) -> None:
@@ -191,14 +192,14 @@ class LoopCandidates:
         self.radius = config.radius_fraction * max_range
         self.positions = np.array([p[:3, 3] for p in self.poses]).reshape(-1, 3)
         self.travelled = path_lengths(self.poses) if self.poses else np.zeros(0)
-        self._tree = cKDTree(self.positions) if len(self.positions) else None
+        self._tree = RadiusIndex(self.positions) if len(self.positions) else None
 
     def of(self, j: int) -> list[LoopHypothesis]:
         """Earlier scans near scan ``j`` in space and far from it along the path, nearest first."""
         if self._tree is None:
             return []
         cfg = self.config
-        near = np.asarray(self._tree.query_ball_point(self.positions[j], self.radius), dtype=np.int64)
+        near = self._tree.within(self.positions[j], self.radius)
         older = near[near <= j - cfg.min_index_gap]
         dist = np.linalg.norm(self.positions[older] - self.positions[j], axis=1)
         path = self.travelled[j] - self.travelled[older]
@@ -225,7 +226,7 @@ def find_loop_hypotheses(
     so they can be built on demand) and ``points`` (own frame) each candidate's ``start_overlap`` is
     computed and ranks them; nothing is refused for it, since the start has drifted (the search in
     :func:`verify` puts it back first). ``last_only`` restricts the newer scan to the last one
-    (online use); ``candidates`` reuses a kd-tree already built over ``poses``.
+    (online use); ``candidates`` reuses a :class:`LoopCandidates` already built over ``poses``.
     """
     index = candidates if candidates is not None else LoopCandidates(poses, max_range, config)
     newest = range(len(poses) - 1, len(poses)) if last_only else range(len(poses))

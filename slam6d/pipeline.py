@@ -14,7 +14,7 @@ Stages (after Nüchter et al.):
    the last ``metascan_scans``, each searched with the kd-tree and normals it got when it was added,
    so the metascan costs nothing to build).
 2. Loops. For each scan, earlier scans within a fraction of the laser range but far along the path
-   are loop hypotheses (a kd-tree over the positions); the best by octree overlap is matched by ICP
+   are loop hypotheses (a radius index over the positions); the best by octree overlap is matched by ICP
    from its pose-implied start (and from the octree search's winner when that fits poorly), judged
    against the sequence's usual consecutive overlap and fitness, and when accepted its correction
    is diffused over the loop (:mod:`slam6d.loops`).

@@ -28,12 +28,12 @@ from dataclasses import dataclass, field
 import numba
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial import cKDTree
 
 from slam6d.errors import Cancelled, RelaxationError
 from slam6d.geometry import Matrix, invert, path_lengths
 from slam6d.icp import ICPConfig
 from slam6d.model import ModelIndex
+from slam6d.nn import RadiusIndex
 from slam6d.posegraph import check_connected
 
 FloatArray = NDArray[np.float64]
@@ -216,7 +216,7 @@ def neighbour_pairs(
     so a sparse scan whose overlap falls under ``min_pairs`` must not cut the graph there.
 
     Only pairs whose scanned regions can touch (distance below the sum of their 95th-percentile
-    ranges) are counted, found through a kd-tree over the scan positions, on an evenly thinned copy
+    ranges) are counted, found through a radius index over the scan positions, on an evenly thinned copy
     of the data scan scaled back up; that turns an O(n²) sweep of full queries into one cheap query
     per scan. A quarter of ``sample`` is tried first: a pair where a third of it finds partners is
     far above any useful ``min_pairs`` and keeps that estimate; only the others are counted on the
@@ -237,12 +237,12 @@ def neighbour_pairs(
         return []
     extents = np.array([models.extent(k) for k in chosen])
     centres = np.array([poses[k][:3, 3] for k in chosen])
-    tree = cKDTree(centres)
+    tree = RadiusIndex(centres)
     widest = float(extents.max())
 
     def near(a_pos: int) -> NDArray[np.int64]:
         """Positions (in ``chosen``) of the scans whose reach overlaps scan ``chosen[a_pos]``'s."""
-        ball = np.array(tree.query_ball_point(centres[a_pos], extents[a_pos] + widest), dtype=np.int64)
+        ball = tree.within(centres[a_pos], extents[a_pos] + widest)
         ball = ball[ball != a_pos]
         gaps = np.linalg.norm(centres[ball] - centres[a_pos], axis=1)
         return np.sort(ball[gaps <= extents[a_pos] + extents[ball]])

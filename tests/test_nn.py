@@ -52,6 +52,30 @@ def test_knn_with_more_neighbours_than_points_returns_all() -> None:
     np.testing.assert_allclose(distances[0], [0.0, 1.0, 2.0])
 
 
+@pytest.mark.parametrize("radius", [0.0, 0.3, 1.5, 10.0])
+def test_radius_index_matches_brute_force(radius: float, cloud: tuple[np.ndarray, np.ndarray]) -> None:
+    """The ball query of loop candidates and relaxation's neighbour graph: every point in the ball,
+    from an empty ball (a centre off the points) to one holding the whole cloud."""
+    points, queries = cloud
+    index = nn.RadiusIndex(points)
+    assert len(index) == len(points)
+    for centre in queries[:50]:
+        found = index.within(centre, radius)
+        assert found.dtype == np.int64
+        np.testing.assert_array_equal(found, np.flatnonzero(brute_force(points, centre[None])[0] <= radius))
+    assert len(index.within(points[5], 10.0)) == len(points)
+
+
+def test_radius_index_includes_the_boundary_and_follows_the_widest_axis() -> None:
+    positions = np.array([[0.0, 0.0, 0.0], [0.0, 3.0, 0.0], [4.0, 0.0, 0.0], [4.0, 3.0, 0.0], [0.0, 9.0, 0.0]])
+    index = nn.RadiusIndex(positions)
+    assert index.axis == 1  # y spreads 9 m, x 4 m
+    np.testing.assert_array_equal(index.within(np.zeros(3), 4.0), [0, 1, 2])
+    np.testing.assert_array_equal(index.within(np.zeros(3), 5.0), [0, 1, 2, 3])
+    np.testing.assert_array_equal(index.within(np.array([0.0, 0.0, 1.0]), 0.5), np.zeros(0, dtype=np.int64))
+    assert len(nn.RadiusIndex(np.zeros((0, 3)))) == 0
+
+
 def test_bad_input_is_refused_clearly() -> None:
     with pytest.raises(ValueError, match="unknown nearest-neighbour backend"):
         nn.build_index(np.zeros((3, 3)), "flann")

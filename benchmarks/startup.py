@@ -1,0 +1,106 @@
+"""What a `slam6d run` process costs before its first scan, phase by phase.
+
+Every command is a fresh Python process, and on the short sessions a user runs from the shell the
+start-up is a large part of the command: a 10-scan session's small_gicp chain takes 0.1-0.9 s of CPU
+(``benchmarks/robustness.py``). Each row here is a fresh process doing every phase above it and its
+own; the table gives each phase's share (median CPU, user + system, over ``--repeats`` processes,
+interleaved) and the whole ``slam6d run`` of a simulated 10-scan session without odometry last.
+
+Phases: the interpreter; importing the command line (typer); parsing ``run``'s options as the
+command does (typer validates each through pydantic); the formats registry with numpy; numba's
+import; the engine's modules; numba's first call (it loads its typing and lowering registries, and
+scipy.linalg for BLAS, once per process; two kernels then load from the cache).
+
+The engine's bytecode is written first (``make bytecode``), as an install writes it; numba's
+kernels must be compiled already (``make kernels``, or any earlier run), else the first row that
+calls one pays the compilation.
+
+    .venv/bin/python benchmarks/startup.py [--repeats 7]
+"""
+
+from __future__ import annotations
+
+import argparse
+import compileall
+import os
+import resource
+import statistics
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from benchmarks.trajectory import load  # noqa: E402
+
+
+def phases(session: Path, out: Path) -> list[tuple[str, str]]:
+    """(name, code) of each phase; a phase's process runs the code of every phase up to it."""
+    args = [str(session), "--format", "uos", "--out", str(out)]
+    return [
+        ("interpreter", "pass"),
+        ("command line (typer)", "import slam6d.cli as cli"),
+        (
+            "run's options (typer validates them through pydantic)",
+            f"import typer; typer.main.get_command(cli.app).commands['run'].make_context('run', {args!r})",
+        ),
+        ("formats registry (numpy)", "import slam6d.io.registry"),
+        ("numba import", "import numba"),
+        ("engine modules", "import slam6d.pipeline, slam6d.engine_settings, slam6d.posegraph, slam6d.scheduler"),
+        (
+            "numba's first call (registries, scipy.linalg)",
+            "import numpy as np; from slam6d.octree import reduce_points; reduce_points(np.zeros((10, 3)), 0.1)",
+        ),
+    ]
+
+
+def children_cpu() -> float:
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime
+
+
+def cpu_of(command: list[str]) -> float:
+    """CPU seconds (user + system) of one process running ``command``."""
+    before = children_cpu()
+    subprocess.run(
+        command,
+        check=True,
+        capture_output=True,
+        cwd=ROOT,
+        env=os.environ | {"PYTHONPATH": str(ROOT)},
+    )
+    return children_cpu() - before
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--repeats", type=int, default=7, help="processes per phase (the median is shown)")
+    args = parser.parse_args()
+    compileall.compile_dir(ROOT / "slam6d", quiet=1)
+    with tempfile.TemporaryDirectory() as tmp:
+        session, out = Path(tmp) / "session", Path(tmp) / "out"
+        simulate = ["simulate", str(session), "--world", "outdoor", "--sensor", "vlp16", "--scans", "10", "--seed", "1"]
+        cpu_of([sys.executable, "-m", "slam6d.cli", *simulate, "--no-odometry"])
+        run = [sys.executable, "-m", "slam6d.cli", "run", str(session), "--format", "uos", "--out", str(out)]
+        cpu_of(run)  # compiles any kernel not cached yet
+        steps = phases(session, out)
+        commands = [[sys.executable, "-c", "; ".join(code for _, code in steps[: k + 1])] for k in range(len(steps))]
+        commands.append(run)
+        costs: list[list[float]] = [[] for _ in commands]
+        for _ in range(args.repeats):
+            for k, command in enumerate(commands):
+                costs[k].append(cpu_of(command))
+    medians = [statistics.median(c) for c in costs]
+    print(f"CPU seconds of a fresh process, median of {args.repeats} ({load()})")
+    previous = 0.0
+    for (name, _), cumulative in zip(steps, medians, strict=False):
+        print(f"  {name:55s} {cumulative - previous:6.3f}   (cumulative {cumulative:.3f})")
+        previous = cumulative
+    print(f"  {'before the first scan':55s} {medians[len(steps) - 1]:6.3f}")
+    print(f"  {'slam6d run, 10-scan outdoor VLP-16 session, no odometry':55s} {medians[-1]:6.3f}")
+
+
+if __name__ == "__main__":
+    main()
