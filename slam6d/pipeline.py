@@ -55,9 +55,9 @@ from slam6d.events import (
     StageFailure,
 )
 from slam6d.features import feature_guess
-from slam6d.geometry import Matrix, invert, rotation_angle
+from slam6d.geometry import Matrix, invert, rotation_angle, transform_points
 from slam6d.graph_relaxation import GraphEdge, trajectory_graph
-from slam6d.icp import ICPConfig, ICPIteration, ICPResult, icp_iterations
+from slam6d.icp import ICPConfig, ICPIteration, ICPResult, icp_iterations, translation_constraint
 from slam6d.initial_guess import GuessResult, OctreeSearchConfig, extrapolate_odometry, octree_guess
 from slam6d.io.frames import FrameType, write_sequence_frames
 from slam6d.loops import (
@@ -621,9 +621,29 @@ class Pipeline:
         self.links.append((members[-1], index))
         summary.icp_iterations = len(outcome.iterations)
         summary.rms, summary.fitness, summary.converged = outcome.rms, outcome.fitness, outcome.converged
+        self._measure_constraint(index, model, world_from_model)
         summary.octree_guess = guess is not None
         summary.seconds = time.perf_counter() - began
         yield ScanRegistered(index, self.poses[index].copy(), outcome)
+
+    def _measure_constraint(self, index: int, model: ModelIndex, world_from_model: Matrix) -> None:
+        """Record how strongly the pairs of scan ``index``'s kept fit fix its translation in the
+        weakest direction (``ScanSummary.weakest_constraint``, ``weakest_direction`` in the scan's frame).
+
+        The fitness says how much of the scan paired, not whether the pairs fix all six unknowns: a
+        corridor fits well while its height rests on a few floor and ceiling points (see
+        :func:`slam6d.icp.translation_constraint`), so the report names such scans for the operator."""
+        model_from_scan = invert(world_from_model) @ self.poses[index]
+        moved = transform_points(model_from_scan, self._data_points(index))
+        found, _, _, normals = model.plane_pairs(moved, self._sequential_config.max_distance)
+        if len(found) < 6:
+            return
+        constraint = translation_constraint(moved[found], normals)
+        weakest = model_from_scan[:3, :3].T @ constraint.directions[:, 0]
+        weakest *= 1.0 if weakest[np.argmax(np.abs(weakest))] > 0 else -1.0  # a direction, not a sign
+        summary = self.summaries[index]
+        summary.weakest_constraint = float(constraint.values[0])
+        summary.weakest_direction = [round(float(v), 4) for v in weakest]
 
     def _near_odometry(self, index: int, predicted: Matrix, outcome: Outcome) -> bool:
         """Whether a searched start's fit may be kept: always without odometry on both scans (or

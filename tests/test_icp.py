@@ -284,3 +284,27 @@ def test_libpointmatcher_car_pair_matches_ground_truth(shared_data: Path) -> Non
     result = icp(model, data, np.eye(4), ICPConfig(max_distance=0.25, distance_schedule=(1.0, 0.5)))
     assert result.converged
     assert_pose_close(result.transform, reference, 0.05, 0.5)
+
+
+def test_translation_constraint_names_the_direction_a_corridor_leaves_to_its_floor() -> None:
+    """A corridor along y: two walls (normals along x) hold most pairs, a floor patch 2 % of them and
+    an end wall 10 %. The height rests on the floor alone, so it is the weakest direction with about
+    the floor's share; the length rests on the end wall; sideways the walls fix it."""
+    from slam6d.icp import translation_constraint
+
+    rng = np.random.default_rng(3)
+    walls = np.c_[rng.choice([-1.0, 1.0], 880), rng.uniform(-5, 5, 880), rng.uniform(-1.4, 1.4, 880)]
+    floor = np.c_[rng.uniform(-1, 1, 20), rng.uniform(-5, 5, 20), np.full(20, -1.4)]
+    end = np.c_[rng.uniform(-1, 1, 100), np.full(100, 5.0), rng.uniform(-1.4, 1.4, 100)]
+    points = np.vstack([walls, floor, end])
+    normals = np.vstack(
+        [np.c_[np.ones(880), np.zeros((880, 2))], np.tile([0, 0, 1.0], (20, 1)), np.tile([0, 1.0, 0], (100, 1))]
+    )
+    constraint = translation_constraint(points, normals)
+    assert np.all(np.diff(constraint.values) >= 0)  # weakest first
+    assert abs(constraint.directions[2, 0]) > 0.99  # the height
+    assert 0.005 < constraint.values[0] < 0.02  # about the floor's 2 % (the rotations take a little)
+    assert abs(constraint.directions[1, 1]) > 0.99 and constraint.values[1] < 0.1  # the length: the end wall
+    assert abs(constraint.directions[0, 2]) > 0.99 and constraint.values[2] > 0.8  # sideways: the walls
+    with pytest.raises(ValueError, match="6 unknowns"):
+        translation_constraint(points[:5], normals[:5])
