@@ -10,6 +10,9 @@ and converges in a few iterations. It is the default because it is 3-6x faster i
 ``benchmarks/pair.py`` at the same useful accuracy (about 0.1 mm on an exact 100k-point copy, and
 within the reference's own uncertainty on a real pair).
 
+:func:`translation_constraint` says how strongly a set of point-to-plane pairs fixes the translation
+in each direction, for telling a good fit from one whose many pairs leave a direction to a handful.
+
 Everything here works with ``transform`` = ``model_from_data``: ``model ≈ transform_points(T, data)``.
 :func:`icp_iterations` yields one :class:`ICPIteration` per step so the workbench can show each
 correspondence set; :func:`icp` runs it to the end.
@@ -239,8 +242,8 @@ def point_to_plane_step(data: FloatArray, model: FloatArray, normals: FloatArray
 # ---------------------------------------------------------------- how well the pairs fix the motion
 
 # Under this a translation counts as barely fixed. On the simulated hand-held indoor walks without
-# odometry (VLP-16, OS1-64, seeds 1-2) consecutive pairs that registration placed within 4 cm had
-# 0.6-25 %, the corridor pairs whose height it got 7-54 cm wrong 0.4-1.2 % at the pose it kept.
+# odometry (VLP-16, OS1-64, seeds 1-2), at the poses registration kept: fits within 5 cm of the truth
+# 0.7-25 % (all but one over 1.1 %), the corridor fits 18-54 cm off in height 0.4-1.2 %.
 WEAK_CONSTRAINT = 0.01
 
 
@@ -268,7 +271,7 @@ def translation_constraint(data: FloatArray, normals: FloatArray) -> Translation
     points. A corridor seen by a 16- or 64-beam lidar held at chest height is the case measured: the
     walls fix the sideways motion and the heading, only the floor and ceiling fix the height, and they
     lie beyond the lowest and highest beams but for about 1 % of the points; ICP started from the truth
-    drifts 5-15 cm in height there (docs/robustness.md, "Indoor hand-held walks without odometry").
+    drifts 5-19 cm in height there (docs/robustness.md, "Indoor hand-held walks without odometry").
     """
     data = np.asarray(data, dtype=np.float64)
     if len(data) < 6:

@@ -4,6 +4,7 @@ fallback and the pipeline without odometry (the sensors, worlds and motions of `
 from __future__ import annotations
 
 import itertools
+import json
 import math
 
 import numpy as np
@@ -253,3 +254,15 @@ def test_corridor_fits_whose_height_rests_on_a_few_floor_points_are_named(tmp_pa
             assert abs(pipeline.summaries[index].weakest_direction[2]) > 0.9  # the scanner's z: its height
     assert 6 in marks["vlp16"]
     assert marks["hdl32"] == set()
+    # the user sees it: a line from slam6d run, and the figures in report.json
+    from typer.testing import CliRunner
+
+    from slam6d.cli import app
+
+    out = tmp_path / "out"
+    args = ["run", str(tmp_path / "vlp16"), "--format", "uos", "--last", "7", "--out", str(out), "--no-loops"]
+    result = CliRunner().invoke(app, [*args, "--relaxation", "none"])
+    assert result.exit_code == 0, result.output
+    assert "scan 6 (scan006): its fit barely fixes its translation along the scanner's z (its height)" in result.output
+    summary = json.loads((out / "report.json").read_text())["scan_summaries"][6]
+    assert summary["weakest_constraint"] < WEAK_CONSTRAINT and abs(summary["weakest_direction"][2]) > 0.9
