@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -308,3 +309,36 @@ def test_translation_constraint_names_the_direction_a_corridor_leaves_to_its_flo
     assert abs(constraint.directions[0, 2]) > 0.99 and constraint.values[2] > 0.8  # sideways: the walls
     with pytest.raises(ValueError, match="6 unknowns"):
         translation_constraint(points[:5], normals[:5])
+
+
+def _corridor(spacing: float = 0.05) -> np.ndarray:
+    """Two walls 2 m apart along y and an end wall, 2.8 m high, no floor or ceiling: nothing fixes z."""
+    y, z = np.meshgrid(np.arange(-5, 5, spacing), np.arange(-1.4, 1.4, spacing))
+    walls = [np.c_[np.full(y.size, x), y.ravel(), z.ravel()] for x in (-1.0, 1.0)]
+    x, z = np.meshgrid(np.arange(-1, 1, spacing), np.arange(-1.4, 1.4, spacing))
+    return np.vstack([*walls, np.c_[x.ravel(), np.full(x.size, 5.0), z.ravel()]])
+
+
+def test_icp_holds_a_translation_no_pair_fixes_at_the_anchor_and_settles_the_rest() -> None:
+    """In a corridor without floor or ceiling the height is free: ICP's answer along it is whatever
+    its start and noise give. With ``hold_below`` it ends at the anchor's height, and the motion the
+    walls do fix (sideways, along to the end wall, the turn) converges as without it."""
+    from slam6d.icp import translation_constraint
+
+    model = _corridor()
+    truth = make_pose(rot_z(np.radians(4.0)), [0.08, -0.15, 0.06])
+    data = transform_points(invert(truth), model)
+    config = ICPConfig(max_distance=0.5, data_voxel_size=0.0, normal_voxel_size=0.0, hold_below=0.01)
+    free = icp(model, data, np.eye(4), replace(config, hold_below=0.0))
+    anchor = np.array([0.0, 0.0, 0.06])  # e.g. where the previous scan stood, at the true height
+    iterations = list(icp_iterations(model, data, np.eye(4), config, anchor))
+    held = iterations[-1].transform
+    assert iterations[-1].converged and iterations[-1].held == 1
+    assert abs(held[2, 3] - 0.06) < 1e-3  # at the anchor's height (the held direction is z to the normals' accuracy)
+    assert abs(free.transform[2, 3] - 0.06) > 0.01  # left alone, ICP ends where its pairs drift
+    metres, radians = pose_difference(held, truth)
+    assert metres < 1e-3 and np.degrees(radians) < 0.01  # the rest converged to the truth
+    points = transform_points(held, data)
+    assert translation_constraint(points, np.tile([1.0, 0, 0], (len(points), 1))).values[0] < 1e-9
+    with pytest.raises(ValueError, match="hold_below"):
+        ICPConfig(hold_below=1.0)
