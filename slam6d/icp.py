@@ -15,8 +15,10 @@ in each direction, for telling a good fit from one whose many pairs leave a dire
 Along such a direction ICP's minimum is set by the normals' noise, not by the scene, and ICP drifts
 there (a corridor seen by a 16-beam lidar: 5-19 cm in height from the truth itself). With
 ``ICPConfig.hold_below`` the converged run checks its pairs; translations fixed less than that are
-put back where the caller's ``anchor`` has them (the start's position by default) and held there
-while ICP settles the rotation and the other translations again, with a fresh iteration budget.
+put back where the caller's ``anchor`` has them (the start's position by default; given where the
+scan was before, a motion across the way from there is taken as none and one along it as predicted)
+and held there while ICP settles the rotation and the other translations again, with a fresh
+iteration budget.
 
 Everything here works with ``transform`` = ``model_from_data``: ``model ≈ transform_points(T, data)``.
 :func:`icp_iterations` yields one :class:`ICPIteration` per step so the workbench can show each
@@ -338,8 +340,9 @@ def icp_iterations(
 ) -> Iterator[ICPIteration]:
     """Run ICP one step at a time (see the module docstring for the convergence rule).
 
-    ``anchor``: where (model frame) the data scan's origin stays along the translations that
-    ``config.hold_below`` holds; None keeps the start's. Raises :class:`RegistrationError` when a step
+    ``anchor``: where (model frame) the data scan's origin was before it moved to the start; a
+    translation that ``config.hold_below`` holds keeps the anchor's position across the way from it to
+    the start and the start's along it (see :func:`_held_at`); None keeps the start's. Raises :class:`RegistrationError` when a step
     finds fewer than ``config.min_pairs`` pairs.
     """
     data = _prepare_data(data, config)
@@ -372,6 +375,17 @@ def _settled(steps: list[FloatArray], tolerance: float) -> bool:
     return False
 
 
+def _held_at(held: FloatArray, start: FloatArray, last: FloatArray) -> FloatArray:
+    """Where the data scan's origin stays along each held translation (unit columns of ``held``): the
+    start's position along the way from ``last`` (where it was) to ``start`` (where it is predicted),
+    a motion that goes on, and ``last``'s across it, where a hand's sway or a body's wobble comes and
+    goes (a corridor's height). Within 45° of the way counts as along it."""
+    way = start - last
+    length = float(np.linalg.norm(way))
+    along = np.abs(held.T @ way) > np.cos(np.radians(45.0)) * length if length > 0 else np.zeros(held.shape[1], bool)
+    return np.where(along, held.T @ start, held.T @ last)
+
+
 def _iterate(
     model: ModelIndex,
     data: FloatArray,
@@ -380,7 +394,8 @@ def _iterate(
     anchor: FloatArray | None = None,
 ) -> Iterator[ICPIteration]:
     point_to_plane = config.method == "point_to_plane"
-    keep = transform[:3, 3].copy() if anchor is None else np.asarray(anchor, dtype=np.float64).reshape(3)
+    start = transform[:3, 3].copy()
+    last = start if anchor is None else np.asarray(anchor, dtype=np.float64).reshape(3)
     stages = config.stages()
     stage = 0
     steps: list[FloatArray] = []  # updates of the current stage, newest last
@@ -419,7 +434,7 @@ def _iterate(
             weak = constraint.values < config.hold_below
             if weak.any():
                 held = constraint.directions[:, weak]
-                transform[:3, 3] -= held @ (held.T @ (transform[:3, 3] - keep))
+                transform[:3, 3] -= held @ (held.T @ transform[:3, 3] - _held_at(held, start, last))
                 steps, budget, finished = [], config.max_iterations, False
         yield ICPIteration(
             index=index,

@@ -149,6 +149,19 @@ class PipelineConfig:
     3 m step, a third of the model out of view) happens with the right answer, and there the global
     feature guess can pair a symmetric street the other way round a little better (campus scan 269:
     kept 2.9 m and 153° off an odometry 6 cm and 1.3° off). ``math.inf`` trusts the searches always.
+    ``hold_constraint``: a sequential fit's translations that its pairs fix less than this share
+    (:func:`slam6d.icp.translation_constraint`) are held (``ICPConfig.hold_below``): at the odometry's
+    prediction when there is one, else at the previous scan's position across the predicted way and
+    at the prediction along it; 0 turns it off. The case: a corridor seen by a VLP-16 or OS1-64 held
+    at 1.4 m, whose floor and ceiling lie beyond the beams but for ~1 % of the points. ICP's height
+    there follows the normals' noise (from the truth it drifts 5-19 cm) and ended 18-54 cm off from
+    the constant-velocity prediction, whose own height is 14-39 cm off (the last step repeated from a
+    frame tilted by the hand's wobble); the previous scan's height is off by the hand's sway, a few
+    centimetres. The constraint of those fits is 0.3-1.2 % at the right pose but reads 1.7-2.1 % at
+    a pose already 42-48 cm off, so the bar sits above that; fits that pair the floor (the HDL-32E's
+    walks, every car session) have 5-25 % and are never held. With 1.5 % the matrix's indoor VLP-16
+    seed 2 walk still ended 15 cm off; with 2.5 % all four indoor walks without odometry end at
+    0.9-3.3 cm (docs/robustness.md, "Indoor hand-held walks without odometry").
     """
 
     voxel_size: float = 0.1

@@ -311,18 +311,23 @@ def test_translation_constraint_names_the_direction_a_corridor_leaves_to_its_flo
         translation_constraint(points[:5], normals[:5])
 
 
-def _corridor(spacing: float = 0.05) -> np.ndarray:
-    """Two walls 2 m apart along y and an end wall, 2.8 m high, no floor or ceiling: nothing fixes z."""
+def _corridor(spacing: float = 0.05, end_wall: bool = True) -> np.ndarray:
+    """Two walls 2 m apart along y, 2.8 m high, and an end wall (nothing fixes z) or a floor instead
+    (nothing fixes y: a tunnel)."""
     y, z = np.meshgrid(np.arange(-5, 5, spacing), np.arange(-1.4, 1.4, spacing))
     walls = [np.c_[np.full(y.size, x), y.ravel(), z.ravel()] for x in (-1.0, 1.0)]
-    x, z = np.meshgrid(np.arange(-1, 1, spacing), np.arange(-1.4, 1.4, spacing))
-    return np.vstack([*walls, np.c_[x.ravel(), np.full(x.size, 5.0), z.ravel()]])
+    if end_wall:
+        x, z = np.meshgrid(np.arange(-1, 1, spacing), np.arange(-1.4, 1.4, spacing))
+        return np.vstack([*walls, np.c_[x.ravel(), np.full(x.size, 5.0), z.ravel()]])
+    x, y = np.meshgrid(np.arange(-1, 1, spacing), np.arange(-5, 5, spacing))
+    return np.vstack([*walls, np.c_[x.ravel(), y.ravel(), np.full(x.size, -1.4)]])
 
 
 def test_icp_holds_a_translation_no_pair_fixes_at_the_anchor_and_settles_the_rest() -> None:
     """In a corridor without floor or ceiling the height is free: ICP's answer along it is whatever
-    its start and noise give. With ``hold_below`` it ends at the anchor's height, and the motion the
-    walls do fix (sideways, along to the end wall, the turn) converges as without it."""
+    its start and noise give. With ``hold_below`` it ends at the anchor's height (across the way from
+    the anchor to the start, so taken as unchanged), and the motion the walls do fix (sideways, along
+    to the end wall, the turn) converges as without it."""
     from slam6d.icp import translation_constraint
 
     model = _corridor()
@@ -330,7 +335,7 @@ def test_icp_holds_a_translation_no_pair_fixes_at_the_anchor_and_settles_the_res
     data = transform_points(invert(truth), model)
     config = ICPConfig(max_distance=0.5, data_voxel_size=0.0, normal_voxel_size=0.0, hold_below=0.01)
     free = icp(model, data, np.eye(4), replace(config, hold_below=0.0))
-    anchor = np.array([0.0, 0.0, 0.06])  # e.g. where the previous scan stood, at the true height
+    anchor = np.array([0.0, -0.5, 0.06])  # where the scan was before: 0.5 m back, at the true height
     iterations = list(icp_iterations(model, data, np.eye(4), config, anchor))
     held = iterations[-1].transform
     assert iterations[-1].converged and iterations[-1].held == 1
@@ -342,3 +347,20 @@ def test_icp_holds_a_translation_no_pair_fixes_at_the_anchor_and_settles_the_res
     assert translation_constraint(points, np.tile([1.0, 0, 0], (len(points), 1))).values[0] < 1e-9
     with pytest.raises(ValueError, match="hold_below"):
         ICPConfig(hold_below=1.0)
+
+
+def test_icp_holds_a_free_translation_along_the_way_at_the_start() -> None:
+    """A tunnel: walls and a floor fix everything but the motion along it. Held there, the scan keeps
+    the start's (predicted) position, not the anchor's: a vehicle going along a tunnel goes on, where
+    the height of a hand-held scanner in a corridor (across its way) is taken as unchanged."""
+    model = _corridor(end_wall=False)
+    truth = make_pose(rot_z(np.radians(3.0)), [0.05, 0.4, 0.02])
+    data = transform_points(invert(truth), model)
+    config = ICPConfig(max_distance=0.5, data_voxel_size=0.0, normal_voxel_size=0.0, hold_below=0.01)
+    start = make_pose(np.eye(3), [0.0, 0.5, 0.0])  # predicted 0.5 m along the tunnel from the anchor
+    iterations = list(icp_iterations(model, data, start, config, anchor=np.zeros(3)))
+    held = iterations[-1].transform
+    assert iterations[-1].converged and iterations[-1].held == 1
+    assert abs(held[1, 3] - 0.5) < 1e-3  # along the way: the start's
+    assert abs(held[0, 3] - 0.05) < 1e-3 and abs(held[2, 3] - 0.02) < 1e-3  # the rest: the truth
+    assert pose_difference(held, truth)[1] < np.radians(0.01)
