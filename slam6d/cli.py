@@ -523,7 +523,8 @@ def run(
             typer.echo(
                 f"scan {summary.index} ({summary.name}): its fit barely fixes its translation along"
                 f" {_axis_words(summary.weakest_direction)} ({100 * summary.weakest_constraint:.2f} % of the pairs'"
-                " worth, see report.json); check it"
+                f" worth){'; held where the motion puts it, not fitted' if summary.held_translations else ''};"
+                " check it (report.json)"
             )
     if report.residual_before is not None and report.residual_after is not None:
         typer.echo(
