@@ -516,6 +516,16 @@ def run(
     paths = write_results(pipeline, out, extra)
     closed = ", ".join(f"{i}-{j}" for i, j in report.loops_closed) or "none"
     typer.echo(f"{len(sequence)} scans registered; loops closed: {closed}")
+    from slam6d.icp import WEAK_CONSTRAINT
+
+    for summary in report.scan_summaries:  # a good fitness, yet one direction rests on a handful of points
+        if summary.weakest_constraint < WEAK_CONSTRAINT:
+            typer.echo(
+                f"scan {summary.index} ({summary.name}): its fit barely fixes its translation along"
+                f" {_axis_words(summary.weakest_direction)} ({100 * summary.weakest_constraint:.2f} % of the pairs'"
+                f" worth){'; held where the motion puts it, not fitted' if summary.held_translations else ''};"
+                " check it (report.json)"
+            )
     if report.residual_before is not None and report.residual_after is not None:
         typer.echo(
             f"relaxation ({report.relaxation}): point-to-plane RMS {100 * report.residual_before:.2f} -> "
@@ -525,6 +535,12 @@ def run(
     typer.echo(f"times: reading {read_seconds:.2f}s, {stages}; total {time.perf_counter() - began:.2f}s")
     typer.echo(f"peak memory {report.peak_memory_bytes / 1e9:.2f} GB")
     typer.echo(f"wrote {paths['poses']}, {paths['report']} and {len(sequence)} .frames files")
+
+
+def _axis_words(direction: list[float]) -> str:
+    """A scanner-frame direction by the axis it mostly lies along (the scanner's z: its height)."""
+    axis = int(max(range(3), key=lambda k: abs(direction[k])))
+    return ("the scanner's x", "the scanner's y", "the scanner's z (its height)")[axis]
 
 
 STAGE_FAILED = 3  # exit code of `slam6d run` when a stage failed after earlier ones wrote their results

@@ -101,6 +101,11 @@ class ScanSummary:
     start: str = "start"  # the start the kept ICP result came from: start (prediction), octree or features
     starts_tried: list[str] = field(default_factory=list)
     registered: bool = True  # False: no start gave ICP enough pairs; the scan kept its predicted pose
+    # how strongly the kept fit's pairs fix its translation in the weakest direction (0 none, 1 every
+    # pair: slam6d.icp.translation_constraint) and that direction, a unit vector in the scan's own frame
+    weakest_constraint: float = float("nan")
+    weakest_direction: list[float] = field(default_factory=list)
+    held_translations: int = 0  # of them held where the prediction has them (PipelineConfig.hold_constraint)
     failure: str = ""  # why it was not registered
 
 

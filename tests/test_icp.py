@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -284,3 +285,82 @@ def test_libpointmatcher_car_pair_matches_ground_truth(shared_data: Path) -> Non
     result = icp(model, data, np.eye(4), ICPConfig(max_distance=0.25, distance_schedule=(1.0, 0.5)))
     assert result.converged
     assert_pose_close(result.transform, reference, 0.05, 0.5)
+
+
+def test_translation_constraint_names_the_direction_a_corridor_leaves_to_its_floor() -> None:
+    """A corridor along y: two walls (normals along x) hold most pairs, a floor patch 2 % of them and
+    an end wall 10 %. The height rests on the floor alone, so it is the weakest direction with about
+    the floor's share; the length rests on the end wall; sideways the walls fix it."""
+    from slam6d.icp import translation_constraint
+
+    rng = np.random.default_rng(3)
+    walls = np.c_[rng.choice([-1.0, 1.0], 880), rng.uniform(-5, 5, 880), rng.uniform(-1.4, 1.4, 880)]
+    floor = np.c_[rng.uniform(-1, 1, 20), rng.uniform(-5, 5, 20), np.full(20, -1.4)]
+    end = np.c_[rng.uniform(-1, 1, 100), np.full(100, 5.0), rng.uniform(-1.4, 1.4, 100)]
+    points = np.vstack([walls, floor, end])
+    normals = np.vstack(
+        [np.c_[np.ones(880), np.zeros((880, 2))], np.tile([0, 0, 1.0], (20, 1)), np.tile([0, 1.0, 0], (100, 1))]
+    )
+    constraint = translation_constraint(points, normals)
+    assert np.all(np.diff(constraint.values) >= 0)  # weakest first
+    assert abs(constraint.directions[2, 0]) > 0.99  # the height
+    assert 0.005 < constraint.values[0] < 0.02  # about the floor's 2 % (the rotations take a little)
+    assert abs(constraint.directions[1, 1]) > 0.99 and constraint.values[1] < 0.1  # the length: the end wall
+    assert abs(constraint.directions[0, 2]) > 0.99 and constraint.values[2] > 0.8  # sideways: the walls
+    with pytest.raises(ValueError, match="6 unknowns"):
+        translation_constraint(points[:5], normals[:5])
+
+
+def _corridor(spacing: float = 0.05, end_wall: bool = True) -> np.ndarray:
+    """Two walls 2 m apart along y, 2.8 m high, and an end wall (nothing fixes z) or a floor instead
+    (nothing fixes y: a tunnel)."""
+    y, z = np.meshgrid(np.arange(-5, 5, spacing), np.arange(-1.4, 1.4, spacing))
+    walls = [np.c_[np.full(y.size, x), y.ravel(), z.ravel()] for x in (-1.0, 1.0)]
+    if end_wall:
+        x, z = np.meshgrid(np.arange(-1, 1, spacing), np.arange(-1.4, 1.4, spacing))
+        return np.vstack([*walls, np.c_[x.ravel(), np.full(x.size, 5.0), z.ravel()]])
+    x, y = np.meshgrid(np.arange(-1, 1, spacing), np.arange(-5, 5, spacing))
+    return np.vstack([*walls, np.c_[x.ravel(), y.ravel(), np.full(x.size, -1.4)]])
+
+
+def test_icp_holds_a_translation_no_pair_fixes_at_the_anchor_and_settles_the_rest() -> None:
+    """In a corridor without floor or ceiling the height is free: ICP's answer along it is whatever
+    its start and noise give. With ``hold_below`` it ends at the anchor's height (across the way from
+    the anchor to the start, so taken as unchanged), and the motion the walls do fix (sideways, along
+    to the end wall, the turn) converges as without it."""
+    from slam6d.icp import translation_constraint
+
+    model = _corridor()
+    truth = make_pose(rot_z(np.radians(4.0)), [0.08, -0.15, 0.06])
+    data = transform_points(invert(truth), model)
+    config = ICPConfig(max_distance=0.5, data_voxel_size=0.0, normal_voxel_size=0.0, hold_below=0.01)
+    free = icp(model, data, np.eye(4), replace(config, hold_below=0.0))
+    anchor = np.array([0.0, -0.5, 0.06])  # where the scan was before: 0.5 m back, at the true height
+    iterations = list(icp_iterations(model, data, np.eye(4), config, anchor))
+    held = iterations[-1].transform
+    assert iterations[-1].converged and iterations[-1].held == 1
+    assert abs(held[2, 3] - 0.06) < 1e-3  # at the anchor's height (the held direction is z to the normals' accuracy)
+    assert abs(free.transform[2, 3] - 0.06) > 0.01  # left alone, ICP ends where its pairs drift
+    metres, radians = pose_difference(held, truth)
+    assert metres < 1e-3 and np.degrees(radians) < 0.01  # the rest converged to the truth
+    points = transform_points(held, data)
+    assert translation_constraint(points, np.tile([1.0, 0, 0], (len(points), 1))).values[0] < 1e-9
+    with pytest.raises(ValueError, match="hold_below"):
+        ICPConfig(hold_below=1.0)
+
+
+def test_icp_holds_a_free_translation_along_the_way_at_the_start() -> None:
+    """A tunnel: walls and a floor fix everything but the motion along it. Held there, the scan keeps
+    the start's (predicted) position, not the anchor's: a vehicle going along a tunnel goes on, where
+    the height of a hand-held scanner in a corridor (across its way) is taken as unchanged."""
+    model = _corridor(end_wall=False)
+    truth = make_pose(rot_z(np.radians(3.0)), [0.05, 0.4, 0.02])
+    data = transform_points(invert(truth), model)
+    config = ICPConfig(max_distance=0.5, data_voxel_size=0.0, normal_voxel_size=0.0, hold_below=0.01)
+    start = make_pose(np.eye(3), [0.0, 0.5, 0.0])  # predicted 0.5 m along the tunnel from the anchor
+    iterations = list(icp_iterations(model, data, start, config, anchor=np.zeros(3)))
+    held = iterations[-1].transform
+    assert iterations[-1].converged and iterations[-1].held == 1
+    assert abs(held[1, 3] - 0.5) < 1e-3  # along the way: the start's
+    assert abs(held[0, 3] - 0.05) < 1e-3 and abs(held[2, 3] - 0.02) < 1e-3  # the rest: the truth
+    assert pose_difference(held, truth)[1] < np.radians(0.01)
