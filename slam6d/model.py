@@ -2,8 +2,9 @@
 
 A model is searched by every ICP iteration, every loop check and every relaxation round that pairs
 with it, so its kd-tree, plane sample and normals are kept in a :class:`ModelIndex` and reused; the
-metascan (the union of recent registered scans) is a :class:`StackedModel` searching each member's
-own index in place, instead of a union rebuilt for every new scan.
+metascan (the union of recent registered scans) is either one model over the joined points
+(:func:`fused_model`, what sparse multi-beam scans need: the scans' rings interleave) or a
+:class:`StackedModel` searching each member's own index in place.
 """
 
 from __future__ import annotations
@@ -178,6 +179,45 @@ class ModelIndex:
         points that pair lie off the model's surface, whatever the scans' point spacing."""
         found, partners, _, normals = self.plane_pairs(points, max_distance)
         return np.einsum("ij,ij->i", points[found] - partners, normals)
+
+
+def fused_model(
+    clouds: Sequence[FloatArray],
+    poses: Sequence[FloatArray],
+    normal_neighbours: int = NORMAL_NEIGHBOURS,
+    normal_voxel_size: float = NORMAL_VOXEL_SIZE,
+    backend: str = nn.DEFAULT_BACKEND,
+    threads: int = 2,
+    normal_cell: float = 0.0,
+    voxel_size: float = 0.0,
+) -> ModelIndex:
+    """One model of several registered scans (``poses``: world from each scan): their points joined in
+    the last scan's frame, with the plane sample, cube normals and k-NN fallback over the union (the
+    options as for :class:`ModelIndex`), reduced to one real point per ``voxel_size`` voxel where the
+    scans overlap (0: every point).
+
+    Why (multi-beam lidar): one scan's rings are metres apart on the ground and tens of centimetres
+    on walls, and most of a car's pairs lie on crowns, poles and corners, where a normal fitted to
+    one or two rings is the rings' own plane, not the surface's. A data point pairs with the nearest
+    sample point, on a ring up to the max distance away, and that offset taken along a wrong normal
+    is a residual at the true pose whose sign follows the rings: it tilted every campus step by
+    ~0.25° (docs/scale.md, "Roll and pitch on the campus"). Scans taken a few metres back put their
+    rings between the last scan's, so over the union the pairs are closer and the planes span
+    interleaved rings. Unlike a :class:`StackedModel`, whose members keep their own normals, the
+    union is indexed anew, which the cube normals (one pass over the points) make cheap.
+    """
+    if not clouds or len(clouds) != len(poses):
+        raise ValueError("a fused model needs one pose per scan and at least one scan")
+    last_from_world = invert(np.asarray(poses[-1], dtype=np.float64))
+    points = np.concatenate(
+        [
+            transform_points(last_from_world @ np.asarray(p, dtype=np.float64), c)
+            for c, p in zip(clouds, poses, strict=True)
+        ]
+    )
+    if voxel_size > 0:  # a dense scanner's scans cover the same surfaces: keep the scans' own density
+        points = points[reduce_points(points, voxel_size)]
+    return ModelIndex(points, normal_neighbours, normal_voxel_size, backend, threads, normal_cell)
 
 
 class StackedModel(ModelIndex):
