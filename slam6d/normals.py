@@ -214,6 +214,7 @@ def cell_normals(
     levels: int = CELL_LEVELS,
     min_spread: float = CELL_MIN_SPREAD,
     max_thickness: float = CELL_MAX_THICKNESS,
+    level_out: NDArray[np.int8] | None = None,
 ) -> tuple[FloatArray, NDArray[np.bool_]]:
     """Unit normal at every point from a PCA of the points sharing its cube, and which are usable.
 
@@ -229,7 +230,9 @@ def cell_normals(
     ``middle >= min_spread * size**2 / 12`` (the points spread across the cube in a second direction
     by more than a scan line's range noise does: a whole cube covered has ``size**2 / 12``) and
     ``small <= max_thickness * middle`` (one flat surface, not two meeting in an edge). Points
-    whose cubes are unusable at every level are marked unusable.
+    whose cubes are unusable at every level are marked unusable. ``level_out`` (one per point), when
+    given, receives the level each normal came from: 1 for ``cell_size``, 2 for twice that, ...,
+    0 for none.
     """
     points = np.ascontiguousarray(points, dtype=np.float64)
     if len(points) == 0:
@@ -238,7 +241,9 @@ def cell_normals(
     normals = np.zeros((len(points), 3))
     valid = np.zeros(len(points), dtype=np.bool_)
     size = float(cell_size)
-    for _ in range(max(1, int(levels))):
+    if level_out is not None:
+        level_out[:] = 0
+    for level in range(1, max(1, int(levels)) + 1):
         todo = np.flatnonzero(~valid)
         if len(todo) == 0:
             break
@@ -253,6 +258,8 @@ def cell_normals(
         )
         normals[todo] = cube_normals[cell_of[todo]]
         valid[todo] = cube_valid[cell_of[todo]]
+        if level_out is not None:
+            level_out[todo[valid[todo]]] = level
         size *= 2.0
     return normals, valid
 

@@ -14,10 +14,10 @@ import pytest
 
 from slam6d.geometry import invert, make_pose, rotation_angle
 from slam6d.icp import ICPConfig, icp
-from slam6d.model import fused_model
+from slam6d.model import ModelIndex, fused_model
 from slam6d.normals import cell_normals
 from slam6d.octree import reduce_points
-from slam6d.pipeline import PipelineConfig
+from slam6d.pipeline import FUSE_BELOW_CUBE_SHARE, PipelineConfig
 from slam6d.simulate import SimulationConfig, simulated_scans
 
 SENSOR_HEIGHT = 1.8  # metres, a car's roof
@@ -101,3 +101,21 @@ def test_fused_scans_interleave_their_rings_into_level_planes() -> None:
     assert shares[1] > 2.0 * shares[0], shares
     with pytest.raises(ValueError, match="one pose per scan"):
         fused_model([first, second], poses[:1])
+
+
+def test_the_smallest_cube_share_tells_ring_scans_from_dense_ones() -> None:
+    """What decides whether sequential registration fuses the metascan: on the ring-sampled ground
+    hardly any 0.4 m cube holds a plane (the rings lie 1-3 m apart), on a densely sampled floor
+    nearly every one does; ``level_out`` says which cube each normal came from."""
+    ring = ModelIndex(ring_ground(0.03), normal_voxel_size=0.2, normal_cell=0.4)
+    share = ring.smallest_cube_share
+    assert share is not None and share < FUSE_BELOW_CUBE_SHARE / 2, share
+    x, y = np.meshgrid(np.arange(-5.0, 5.0, 0.05), np.arange(-5.0, 5.0, 0.05))
+    floor = np.c_[x.ravel(), y.ravel(), np.full(x.size, -1.8)]
+    dense = ModelIndex(floor, normal_voxel_size=0.2, normal_cell=0.4).smallest_cube_share
+    assert dense is not None and dense > 0.9, dense
+    assert ModelIndex(floor).smallest_cube_share is None  # k-NN normals only: nothing to tell
+    level = np.zeros(len(floor), dtype=np.int8)
+    _, usable = cell_normals(floor, 0.4, level_out=level)
+    assert usable.all() and np.mean(level == 1) > 0.9  # the cubes cut at the floor's edge need larger ones
+    assert np.array_equal(level > 0, usable)
