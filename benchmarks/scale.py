@@ -251,7 +251,7 @@ def per_step(work: Path, scans: int) -> None:
     sample_voxel, data_voxel = pipeline.sample_voxels * voxel, pipeline.data_voxel_size
     max_distance = pipeline.icp.max_distance
     sources = ("0.4 m cubes (before)", "0.4-3.2 m cubes", "mesh surface normals")
-    fused_name = f"{pipeline.metascan_scans} scans fused, 0.4-3.2 m cubes (now)"
+    fused_name = f"{pipeline.fused_scans} scans fused, 0.4-3.2 m cubes (now)"
     errors: dict[str, list[list[float]]] = {name: [] for name in sources}
     off: dict[str, list[float]] = {name: [] for name in sources}
     for k in range(1, scans):
@@ -273,7 +273,7 @@ def per_step(work: Path, scans: int) -> None:
         data_all = clouds[k][reduce_points(clouds[k], voxel)]
         data = data_all[reduce_points(data_all, data_voxel)]
         relative = invert(truth[k - 1]) @ truth[k]
-        members = range(max(0, k - pipeline.metascan_scans), k)
+        members = range(max(0, k - pipeline.fused_scans), k)
         fused = fused_model(
             [clouds[j][reduce_points(clouds[j], voxel)] for j in members],
             [truth[j] for j in members],

@@ -368,12 +368,8 @@ def run(
     voxel: Annotated[float, typer.Option(help="Reduction voxel in metres (one real point per voxel); 0 = off.")] = 0.1,
     matching: Annotated[str, typer.Option(help="metascan (against recent registered scans) or pairwise.")] = "metascan",
     metascan_scans: Annotated[
-        int,
-        typer.Option(
-            help="Registered scans the metascan holds, fused into one model (their rings interleave: "
-            "docs/scale.md, 'Roll and pitch on the campus')."
-        ),
-    ] = 3,
+        int, typer.Option(help="Registered scans the metascan holds (each searched with its own kd-tree).")
+    ] = 1,
     method: Annotated[
         str, typer.Option(help="ICP error metric: point_to_plane or point_to_point (the paper's SVD).")
     ] = "point_to_plane",

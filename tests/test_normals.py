@@ -62,11 +62,11 @@ def test_ring_scan_registration_keeps_roll_and_pitch() -> None:
     simulation = simulated_scans(SimulationConfig(seed=3, scans=25, points_per_scan=20000, world="campus"))
     clouds = [cloud[reduce_points(cloud, 0.1)] for cloud in simulation.scans()]
     pipeline = PipelineConfig()
-    assert pipeline.matching == "metascan" and pipeline.fuse_metascan
+    assert pipeline.matching == "metascan" and pipeline.fused_scans == 3
     config = ICPConfig(data_voxel_size=0.35, epsilon=1e-3)
     tilts = []
     for k in range(1, len(clouds)):
-        members = range(max(0, k - pipeline.metascan_scans), k)
+        members = range(max(0, k - pipeline.fused_scans), k)
         model = fused_model(
             [clouds[j] for j in members],
             [simulation.truth[j] for j in members],

@@ -209,7 +209,7 @@ def test_car_easing_out_of_a_turn_without_odometry_registers_from_the_repeated_t
     assert max(repeated) > 3.5  # the prediction is as far off as intended
     # against the previous scan alone, as when this was found: the fused metascan of three scans
     # pairs enough more that its first fit from the prediction already lands right
-    config = PipelineConfig(loops=False, relaxation="none", metascan_scans=1)
+    config = PipelineConfig(loops=False, relaxation="none", fused_scans=0)
     pipeline = Pipeline(read_sequence(tmp_path, "uos", last=6), config)
     report = pipeline.run()
     assert report.failure is None and report.skipped_scans == []
