@@ -2,8 +2,9 @@
 
 A model is searched by every ICP iteration, every loop check and every relaxation round that pairs
 with it, so its kd-tree, plane sample and normals are kept in a :class:`ModelIndex` and reused; the
-metascan (the union of recent registered scans) is a :class:`StackedModel` searching each member's
-own index in place, instead of a union rebuilt for every new scan.
+metascan (the union of recent registered scans) is either one model over the joined points
+(:func:`fused_model`, what sparse multi-beam scans need: the scans' rings interleave) or a
+:class:`StackedModel` searching each member's own index in place.
 """
 
 from __future__ import annotations
@@ -78,6 +79,7 @@ class ModelIndex:
         self._plane_index: nn.NeighbourIndex | None = None
         self._normals = np.zeros((0, 3))
         self._normal_state = np.zeros(0, dtype=np.int8)  # per sample point: 0 unknown, 1 usable, 2 unusable
+        self._smallest_cube_share: float | None = None
 
     def __len__(self) -> int:
         return len(self.points)
@@ -124,15 +126,27 @@ class ModelIndex:
             if self.normal_cell > 0:
                 # all cube normals at once (cheaper than any k-NN estimate), from all the model's points;
                 # where a cube gives none (too few points, an edge) the k-NN estimate is made on demand
-                normals, usable = cell_normals(self.points, self.normal_cell)
+                level = np.zeros(len(self.points), dtype=np.int8)
+                normals, usable = cell_normals(self.points, self.normal_cell, level_out=level)
                 self._normals = normals[indices]
                 self._normal_state = usable[indices].astype(np.int8)
+                self._smallest_cube_share = float(np.mean(level[indices] == 1)) if len(indices) else 0.0
             self._plane_indices = indices
             self._plane_index = (
                 self.index
                 if len(indices) == len(self.points)
                 else nn.build_index(self.points[indices], self.backend, self.threads)
             )
+
+    @property
+    def smallest_cube_share(self) -> float | None:
+        """Share of the plane sample whose normal a ``normal_cell`` cube gives (not a larger cube, not
+        k-NN); None without per-cube normals. Near 0 where the scan's lines lie farther apart than a
+        cube: a multi-beam lidar outdoors (simulated VLP-16 streets and campus: 0.00-0.11), where
+        :func:`fused_model` is needed; a quarter to a half on dense or close-range scans (BALM's
+        hall 0.28, a VLP-16 indoors 0.27-0.50, the seed's SICK loop 0.55)."""
+        self._ensure_plane_sample()
+        return self._smallest_cube_share
 
     def plane_normals_for(self, sample: IndexArray) -> tuple[FloatArray, NDArray[np.bool_]]:
         """Normals at the given plane-sample points (indices into the sample) and whether each is usable."""
@@ -178,6 +192,45 @@ class ModelIndex:
         points that pair lie off the model's surface, whatever the scans' point spacing."""
         found, partners, _, normals = self.plane_pairs(points, max_distance)
         return np.einsum("ij,ij->i", points[found] - partners, normals)
+
+
+def fused_model(
+    clouds: Sequence[FloatArray],
+    poses: Sequence[FloatArray],
+    normal_neighbours: int = NORMAL_NEIGHBOURS,
+    normal_voxel_size: float = NORMAL_VOXEL_SIZE,
+    backend: str = nn.DEFAULT_BACKEND,
+    threads: int = 2,
+    normal_cell: float = 0.0,
+    voxel_size: float = 0.0,
+) -> ModelIndex:
+    """One model of several registered scans (``poses``: world from each scan): their points joined in
+    the last scan's frame, with the plane sample, cube normals and k-NN fallback over the union (the
+    options as for :class:`ModelIndex`), reduced to one real point per ``voxel_size`` voxel where the
+    scans overlap (0: every point).
+
+    Why (multi-beam lidar): one scan's rings are metres apart on the ground and tens of centimetres
+    on walls, and most of a car's pairs lie on crowns, poles and corners, where a normal fitted to
+    one or two rings is the rings' own plane, not the surface's. A data point pairs with the nearest
+    sample point, on a ring up to the max distance away, and that offset taken along a wrong normal
+    is a residual at the true pose whose sign follows the rings: it tilted every campus step by
+    ~0.25° (docs/scale.md, "Roll and pitch on the campus"). Scans taken a few metres back put their
+    rings between the last scan's, so over the union the pairs are closer and the planes span
+    interleaved rings. Unlike a :class:`StackedModel`, whose members keep their own normals, the
+    union is indexed anew, which the cube normals (one pass over the points) make cheap.
+    """
+    if not clouds or len(clouds) != len(poses):
+        raise ValueError("a fused model needs one pose per scan and at least one scan")
+    last_from_world = invert(np.asarray(poses[-1], dtype=np.float64))
+    points = np.concatenate(
+        [
+            transform_points(last_from_world @ np.asarray(p, dtype=np.float64), c)
+            for c, p in zip(clouds, poses, strict=True)
+        ]
+    )
+    if voxel_size > 0:  # a dense scanner's scans cover the same surfaces: keep the scans' own density
+        points = points[reduce_points(points, voxel_size)]
+    return ModelIndex(points, normal_neighbours, normal_voxel_size, backend, threads, normal_cell)
 
 
 class StackedModel(ModelIndex):

@@ -27,9 +27,12 @@ large, which spans two rings: the cube normals of the ring-sampled ground are le
 0.3°, was 9° off). That alone barely moves the campus's per-step error (0.24° / 0.23°), because the
 k-NN fallback still serves half the pairs; without the fallback the error from the truth drops to
 0.18° / 0.18°, but the pairs lost on walls double the yaw error and the 100-scan registration ends
-51 cm off instead of 9-13 cm, so the fallback stays until ring-aware neighbourhoods replace it
-(docs/scale.md, "Roll and pitch on the campus"). Dense scanners (the seed's SICK fan, BALM's hall)
-find their plane in the smallest cube, as before.
+51 cm off instead of 9-13 cm, so the fallback stays. What the cubes and the fallback still get
+wrong is mostly on crowns, poles and corners, where one or two rings are fitted; sequential
+registration now takes such scans' normals (and pairs) from the last three scans fused into one
+model, whose rings interleave (:func:`slam6d.model.fused_model`; per-step tilt 0.24° -> 0.10°;
+docs/scale.md, "The rings' own planes"). Dense scanners (the seed's SICK fan, BALM's hall) find
+their plane in the smallest cube, as before, and are not fused.
 """
 
 from __future__ import annotations
@@ -214,6 +217,7 @@ def cell_normals(
     levels: int = CELL_LEVELS,
     min_spread: float = CELL_MIN_SPREAD,
     max_thickness: float = CELL_MAX_THICKNESS,
+    level_out: NDArray[np.int8] | None = None,
 ) -> tuple[FloatArray, NDArray[np.bool_]]:
     """Unit normal at every point from a PCA of the points sharing its cube, and which are usable.
 
@@ -229,7 +233,9 @@ def cell_normals(
     ``middle >= min_spread * size**2 / 12`` (the points spread across the cube in a second direction
     by more than a scan line's range noise does: a whole cube covered has ``size**2 / 12``) and
     ``small <= max_thickness * middle`` (one flat surface, not two meeting in an edge). Points
-    whose cubes are unusable at every level are marked unusable.
+    whose cubes are unusable at every level are marked unusable. ``level_out`` (one per point), when
+    given, receives the level each normal came from: 1 for ``cell_size``, 2 for twice that, ...,
+    0 for none.
     """
     points = np.ascontiguousarray(points, dtype=np.float64)
     if len(points) == 0:
@@ -238,7 +244,9 @@ def cell_normals(
     normals = np.zeros((len(points), 3))
     valid = np.zeros(len(points), dtype=np.bool_)
     size = float(cell_size)
-    for _ in range(max(1, int(levels))):
+    if level_out is not None:
+        level_out[:] = 0
+    for level in range(1, max(1, int(levels)) + 1):
         todo = np.flatnonzero(~valid)
         if len(todo) == 0:
             break
@@ -253,6 +261,8 @@ def cell_normals(
         )
         normals[todo] = cube_normals[cell_of[todo]]
         valid[todo] = cube_valid[cell_of[todo]]
+        if level_out is not None:
+            level_out[todo[valid[todo]]] = level
         size *= 2.0
     return normals, valid
 
