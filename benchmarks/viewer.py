@@ -338,11 +338,16 @@ def print_first_view(first: dict[str, Any], total: int, load: str) -> None:
         f"{sum(t[1] for t in tasks) / 1000:.2f} s of its {first['whole_map'] - first['client_page']:.2f} s "
         f"(longest {max((t[1] for t in tasks), default=0):.0f} ms)"
     )
-    cpu = first["cpu"]
     print(
-        f"CPU from page.goto to the map drawn: {sum(cpu.values()):.2f} s in all over {first['whole_map']:.2f} s - "
-        + ", ".join(f"{k} {v:.2f} s" for k, v in sorted(cpu.items(), key=lambda kv: -kv[1]) if v >= 0.005)
+        cpu_line(f"CPU from page.goto to the map drawn: {{total}} in all over {first['whole_map']:.2f} s", first["cpu"])
     )
+
+
+def cpu_line(heading: str, cpu: dict[str, float]) -> str:
+    """``heading`` (its ``{total}`` filled in) and each process's CPU seconds, the largest first."""
+    total = f"{sum(cpu.values()):.2f} s"
+    parts = (f"{k} {v:.2f} s" for k, v in sorted(cpu.items(), key=lambda kv: -kv[1]) if v >= 0.005)
+    return heading.format(total=total) + " - " + ", ".join(parts)
 
 
 def open_again(page: Any, server: LiveServer) -> None:
@@ -359,11 +364,7 @@ def open_again(page: Any, server: LiveServer) -> None:
         f"{again['client_bytes'] / 1e3:,.0f} kB over the network for its page), map drawn {again['whole_map']:.2f} s "
         f"({again['points_shown'] or again['points_coarse']:,}+ points, that frame {again['whole_frame_ms']:.0f} ms); load {load}"
     )
-    cpu = again["cpu"]
-    print(
-        f"CPU opening it again: {sum(cpu.values()):.2f} s in all - "
-        + ", ".join(f"{k} {v:.2f} s" for k, v in sorted(cpu.items(), key=lambda kv: -kv[1]) if v >= 0.005)
-    )
+    print(cpu_line("CPU opening it again: {total} in all", again["cpu"]))
 
 
 def wait_for_edge_colours(viewer: Any, timeout: float = 1800.0) -> float:
