@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -14,6 +12,7 @@ from slam6d.pipeline import Pipeline, PipelineConfig
 from slam6d.scan import Scan, ScanSequence
 from slam6d.scan_store import ScanStore
 from slam6d.scheduler import DaskScheduler, SchedulerError, SerialScheduler, open_scheduler
+from tests.cli_process import loaded_by
 from tests.simulated_loop import simulated_loop
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -94,26 +93,12 @@ def test_cli_run_on_local_workers_and_without_dask(tmp_path: Path) -> None:
     simulate_session(
         session, SimulationConfig(seed=4, scans=10, points_per_scan=20000, loop_length=16.0, loop_width=10.0)
     )
-    check = (
-        "import runpy, sys; sys.argv = ['slam6d'] + sys.argv[1:]; "
-        "import slam6d.cli as cli; "
-        "cli._leave = lambda code: (print('dask loaded' if 'dask' in sys.modules else 'no dask'), sys.exit(code)); "
-        "cli.main()"
-    )
     poses = {}
     budget = ["--memory-budget", "50MB"]  # the workers read the scans from OUT/scan_store themselves
     for name, extra in (("serial", []), ("cluster", ["--scheduler", "local:2"])):
         out = tmp_path / name
-        done = subprocess.run(
-            [sys.executable, "-c", check, "run", str(session), "--format", "uos", "--out", str(out), *budget, *extra],
-            capture_output=True,
-            text=True,
-            cwd=ROOT,
-            timeout=300,
-            check=False,
-        )
-        assert done.returncode == 0, done.stderr
-        assert ("no dask" if name == "serial" else "dask loaded") in done.stdout
+        loaded = loaded_by("run", str(session), "--format", "uos", "--out", str(out), *budget, *extra)
+        assert ("dask" in loaded) == (name == "cluster"), loaded
         poses[name] = np.loadtxt(out / "poses_kitti.txt")
         report = json.loads((out / "report.json").read_text())
         assert report["scan_store"]["peak_bytes"] <= 50 * 10**6 and report["peak_memory_bytes"] > 0

@@ -9,52 +9,11 @@ commands or fallbacks use: scipy's spatial and sparse modules, open3d (the featu
 
 from __future__ import annotations
 
-import json
 import subprocess
 import sys
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-
-HEAVY = (
-    "numpy",
-    "numba",
-    "scipy",
-    "scipy.spatial",
-    "scipy.sparse",
-    "open3d",
-    "dask",
-    "distributed",
-    "rich",
-    "matplotlib",
-    "imageio",
-    "imageio_ffmpeg",
-    "PIL",
-    "fastapi",
-    "viser",
-)
-
-# `slam6d.cli.main` ends through `_leave`; the hook reports the loaded modules there, after the command
-_REPORT_MODULES = (
-    "import json, sys; sys.argv = ['slam6d'] + sys.argv[1:]; "
-    "import slam6d.cli as cli; leave = cli._leave; "
-    f"cli._leave = lambda code: (print(json.dumps([m for m in {HEAVY!r} if m in sys.modules])), leave(code)); "
-    "cli.main()"
-)
-
-
-def loaded_by(*args: str) -> set[str]:
-    """The heavy modules a `slam6d ARGS...` process had loaded when the command finished."""
-    done = subprocess.run(
-        [sys.executable, "-c", _REPORT_MODULES, *args],
-        capture_output=True,
-        text=True,
-        cwd=ROOT,
-        timeout=300,
-        check=False,
-    )
-    assert done.returncode == 0, done.stderr
-    return set(json.loads(done.stdout.strip().splitlines()[-1]))
+from tests.cli_process import HEAVY, ROOT, loaded_by
 
 
 def test_importing_the_command_line_loads_no_numerics() -> None:
