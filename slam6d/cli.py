@@ -276,7 +276,7 @@ def simulate(
     Sensors, worlds, motions and timings in detail: docs/simulator.md.
     """
     from slam6d.metrics import absolute_trajectory_error
-    from slam6d.simulate import SimulationConfig, simulate_session
+    from slam6d.simulate import SimulationConfig, simulate_session, validate
 
     if pattern is not None and sensor is not None:
         raise typer.BadParameter("give --sensor or its former name --pattern, not both")
@@ -291,7 +291,7 @@ def simulate(
         decimals=decimals,
     )
     try:
-        config.validate()
+        validate(config)
     except ValueError as exc:
         raise typer.BadParameter(str(exc)) from None
     with progress_bar("simulating") as update:

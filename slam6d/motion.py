@@ -21,7 +21,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from itertools import pairwise
-from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
@@ -29,9 +28,7 @@ from numpy.typing import NDArray
 from slam6d.errors import one_of
 from slam6d.geometry import Matrix, make_pose, pose_from_xyzrpy, rot_x, rot_y, rot_z, xyzrpy_from_pose
 from slam6d.scene_mesh import Scene
-
-if TYPE_CHECKING:
-    from slam6d.simulate import SimulationConfig
+from slam6d.simulation_config import SimulationConfig
 
 
 @dataclass(frozen=True)
@@ -100,8 +97,9 @@ def _wrap(angle: float) -> float:
 
 def ground_truth_poses(config: SimulationConfig, scene: Scene, rng: np.random.Generator | None = None) -> list[Matrix]:
     """Scanner poses standing on the route: up along the ground's normal, forward along the route,
-    with the motion's steps, looking round and wobble. The robot draws nothing from ``rng``."""
-    config = config.resolved()
+    with the motion's steps, looking round and wobble. The robot draws nothing from ``rng``.
+
+    ``config`` is resolved (:func:`slam6d.simulate.resolved`): its motion is named."""
     motion = get_motion(config.motion or "")
     height = config.sensor_height if config.sensor_height is not None else motion.sensor_height
     needs_draws = motion.step_m is not None or motion.look_deg or motion.wobble_deg or motion.sway_m

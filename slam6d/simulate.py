@@ -36,7 +36,8 @@ from slam6d.io.uos import write_uos_scan
 from slam6d.motion import MOTION_NAMES, drifting_odometry, get_motion, ground_truth_poses
 from slam6d.scene_mesh import Scene
 from slam6d.sensors import POINTS_PER_LINE, SENSOR_NAMES, beam_directions, get_sensor
-from slam6d.worlds import WORLD_NAMES, build_scene, get_world
+from slam6d.simulation_config import SimulationConfig
+from slam6d.worlds import WORLD_NAMES, get_world
 
 __all__ = [
     "MOTION_NAMES",
@@ -49,87 +50,62 @@ __all__ = [
     "build_scene",
     "drifting_odometry",
     "ground_truth_poses",
+    "resolved",
     "scan_pattern",
     "simulate_scan",
     "simulate_session",
     "simulated_scans",
+    "validate",
 ]
 
 Progress = Callable[[int, int], None]
 _SCAN_FILE = re.compile(r"^scan\d{3,}\.")
 
 
-@dataclass
-class SimulationConfig:
-    """Everything that shapes a simulated session; lengths in metres, angles in degrees.
+def resolved(config: SimulationConfig) -> SimulationConfig:
+    """``config`` with every None replaced by the world's, sensor's or motion's value.
 
-    Fields left at None take the value that suits the rest: the world's sensor and motion, the
-    sensor's shot count, range and noise, the motion's sensor height (see :meth:`resolved`).
+    The worlds and motions take a resolved configuration: they build from the values, while the
+    choice of defaults is made here, where the registries of worlds, sensors and motions meet.
     """
+    world = get_world(config.world)
+    sensor = get_sensor(config.sensor or world.sensor)
+    motion = get_motion(config.motion or world.motion)
+    return dataclasses.replace(
+        config,
+        sensor=sensor.name,
+        motion=motion.name,
+        points_per_scan=config.points_per_scan if config.points_per_scan is not None else sensor.native_shots,
+        max_range=config.max_range if config.max_range is not None else sensor.max_range,
+        range_noise=config.range_noise if config.range_noise is not None else sensor.range_noise,
+        sensor_height=config.sensor_height if config.sensor_height is not None else motion.sensor_height,
+    )
 
-    seed: int = 0
-    scans: int = 20
-    points_per_scan: int | None = None  # laser shots per scan; misses and too-near hits return nothing
-    sensor: str | None = None  # see slam6d.sensors.SENSORS; None: the world's (loop: rotating-sick)
-    world: str = "loop"  # see slam6d.worlds.WORLDS
-    motion: str | None = None  # see slam6d.motion.MOTIONS; None: the world's (loop: robot)
-    odometry: bool = True  # write the drifting odometry as .pose files and odometry_kitti.txt
-    elevation_min_deg: float = -40.0  # fan (rotating-sick) or tilt (tilting-sick) limits
-    elevation_max_deg: float = 50.0
-    loop_length: float = 32.0  # the loop world is a rounded rectangle around a block
-    loop_width: float = 20.0
-    closing_gap: float = 0.6  # how far along the route the robot's last stop is short of its first
-    sensor_height: float | None = None  # above the ground; None: the motion's (robot 0.5 m)
-    min_range: float = 0.6  # the platform's own body
-    max_range: float | None = None  # None: the sensor's (SICK 30 m)
-    range_noise: float | None = None  # std dev; None: the sensor's (SICK 1 cm)
-    terrain_amplitude: float = 0.5  # loop world: of the smooth height field; slopes reach ~5-8°
-    buildings: int = 7  # loop world: around the loop, besides the block inside it
-    walls: int = 5
-    cars: int = 4
-    poles: int = 5
-    trees: int = 22
-    odometry_scale_error: float = 0.02  # relative error of every travelled distance
-    odometry_yaw_drift_deg_per_m: float = 0.1
-    odometry_turn_error: float = 0.04  # fraction of each turn misjudged (skid steering)
-    odometry_translation_noise: float = 0.01  # std dev as a fraction of the step length
-    odometry_yaw_noise_deg: float = 0.3
-    odometry_height_noise: float = 0.02  # random walk per step
-    odometry_tilt_noise_deg: float = 0.3  # inclinometer noise on roll and pitch, not accumulating
-    decimals: int = 2  # of the centimetre coordinates written to the .3d files
 
-    def resolved(self) -> SimulationConfig:
-        """This configuration with every None replaced by the world's, sensor's or motion's value."""
-        world = get_world(self.world)
-        sensor = get_sensor(self.sensor or world.sensor)
-        motion = get_motion(self.motion or world.motion)
-        return dataclasses.replace(
-            self,
-            sensor=sensor.name,
-            motion=motion.name,
-            points_per_scan=self.points_per_scan if self.points_per_scan is not None else sensor.native_shots,
-            max_range=self.max_range if self.max_range is not None else sensor.max_range,
-            range_noise=self.range_noise if self.range_noise is not None else sensor.range_noise,
-            sensor_height=self.sensor_height if self.sensor_height is not None else motion.sensor_height,
-        )
+def validate(config: SimulationConfig) -> None:
+    """Refuse a configuration no session can be drawn from (ValueError naming the field)."""
+    if config.scans < 2:
+        raise ValueError(f"a session needs at least 2 scans, got {config.scans}")
+    full = resolved(config)  # names the unknown world, sensor or motion
+    sensor = get_sensor(full.sensor or "")
+    assert full.points_per_scan is not None and full.max_range is not None
+    if full.points_per_scan < sensor.beams:
+        what = "laser per column" if sensor.is_multi_beam else "scan line"
+        raise ValueError(f"points_per_scan must be at least one {what} ({sensor.beams}) for {sensor.name}")
+    if not config.elevation_min_deg < config.elevation_max_deg:
+        raise ValueError("elevation_min_deg must be below elevation_max_deg")
+    if not 0.0 < config.min_range < full.max_range:
+        raise ValueError("need 0 < min_range < max_range")
+    if full.range_noise is not None and full.range_noise < 0.0:
+        raise ValueError("range_noise must not be negative")
+    if min(config.loop_length, config.loop_width) < 8.0:
+        raise ValueError("the loop must be at least 8 m in each direction")
 
-    def validate(self) -> None:
-        if self.scans < 2:
-            raise ValueError(f"a session needs at least 2 scans, got {self.scans}")
-        config = self.resolved()  # names the unknown world, sensor or motion
-        sensor = get_sensor(config.sensor or "")
-        assert config.points_per_scan is not None and config.max_range is not None
-        if config.points_per_scan < sensor.beams:
-            what = "laser per column" if sensor.is_multi_beam else "scan line"
-            raise ValueError(f"points_per_scan must be at least one {what} ({sensor.beams}) for {sensor.name}")
-        if not self.elevation_min_deg < self.elevation_max_deg:
-            raise ValueError("elevation_min_deg must be below elevation_max_deg")
-        if not 0.0 < self.min_range < config.max_range:
-            raise ValueError("need 0 < min_range < max_range")
-        if config.range_noise is not None and config.range_noise < 0.0:
-            raise ValueError("range_noise must not be negative")
-        if min(self.loop_length, self.loop_width) < 8.0:
-            raise ValueError("the loop must be at least 8 m in each direction")
+
+def build_scene(config: SimulationConfig, rng: np.random.Generator) -> Scene:
+    """The world of a session; drawn first from the seeded generator, so ``default_rng(seed)`` rebuilds it."""
+    full = resolved(config)
+    return get_world(full.world).build(full, rng)
 
 
 @dataclass
@@ -153,7 +129,7 @@ class SimulatedSession:
 
 def scan_pattern(config: SimulationConfig) -> NDArray[np.float64]:
     """Unit ray directions in the scanner frame (x forward, y left, z up), in firing order."""
-    config = config.resolved()
+    config = resolved(config)
     assert config.points_per_scan is not None
     return beam_directions(
         get_sensor(config.sensor or ""), config.points_per_scan, config.elevation_min_deg, config.elevation_max_deg
@@ -164,7 +140,7 @@ def simulate_scan(
     config: SimulationConfig, scene: Scene, pose: Matrix, directions: NDArray[np.float64], rng: np.random.Generator
 ) -> NDArray[np.float64]:
     """Noisy returns of one scan in the scanner frame (canonical, metres), in firing order."""
-    config = config.resolved()
+    config = resolved(config)
     assert config.range_noise is not None and config.max_range is not None
     world_dirs = directions @ pose[:3, :3].T
     ranges = scene.cast(pose[:3, 3], world_dirs)
@@ -196,8 +172,8 @@ class Simulation:
 
 def simulated_scans(config: SimulationConfig) -> Simulation:
     """Everything of a session but the files: its draws in the order :func:`simulate_session` makes them."""
-    config.validate()
-    config = config.resolved()
+    validate(config)
+    config = resolved(config)
     rng = np.random.default_rng(config.seed)
     scene = build_scene(config, rng)
     truth = ground_truth_poses(config, scene, rng)
@@ -218,7 +194,7 @@ def simulate_session(
     ``.pose`` files and no ``odometry_kitti.txt`` are written (an overwritten one is removed).
     """
     config = config or SimulationConfig()
-    config.validate()
+    validate(config)
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise Slam6dError(f"{out}: exists and is not a directory")

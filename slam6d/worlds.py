@@ -13,15 +13,15 @@
   to a parking deck's roof (4 m) driven round and down again, and later a pass under the deck at
   street level, so the same place is seen at two heights.
 
-Every world is drawn from the session's seeded generator in a fixed order, so ``build_scene`` with
-``default_rng(seed)`` rebuilds it exactly.
+Every world is drawn from the session's seeded generator in a fixed order, so
+:func:`slam6d.simulate.build_scene` with ``default_rng(seed)`` rebuilds it exactly. A builder takes a
+resolved configuration (:func:`slam6d.simulate.resolved`: no field left at None).
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
@@ -30,9 +30,7 @@ from slam6d.errors import one_of
 from slam6d.geometry import rot_z
 from slam6d.routes import LoopPath, Route, Terrain, Tour, Waypoint
 from slam6d.scene_mesh import MeshBuilder, Scene
-
-if TYPE_CHECKING:
-    from slam6d.simulate import SimulationConfig
+from slam6d.simulation_config import SimulationConfig
 
 Circle = tuple[float, float, float]  # x, y, radius of a footprint part
 
@@ -147,7 +145,7 @@ def _pole(mesh: MeshBuilder, terrain: Terrain, xy: NDArray[np.float64]) -> None:
 
 def loop_world(config: SimulationConfig, rng: np.random.Generator) -> Scene:
     """The seed's world; its draws from ``rng`` are unchanged, so old seeds give old sessions."""
-    max_range = config.resolved().max_range
+    max_range = config.max_range  # resolved: the sensor's when the user named none
     assert max_range is not None
     terrain = Terrain.random(rng, config.terrain_amplitude)
     path = LoopPath.create(config.loop_length, config.loop_width, rng)
@@ -526,8 +524,3 @@ WORLD_NAMES = tuple(WORLDS)
 
 def get_world(name: str) -> World:
     return one_of(WORLDS, name, "world")
-
-
-def build_scene(config: SimulationConfig, rng: np.random.Generator) -> Scene:
-    """The world of a session; drawn first from the seeded generator, so ``default_rng(seed)`` rebuilds it."""
-    return get_world(config.world).build(config, rng)
