@@ -457,7 +457,8 @@ def test_stacked_model_pairs_like_the_union_of_its_members() -> None:
 def test_searches_in_the_campus_turn_at_scan_269_stay_with_the_odometry(trust: bool) -> None:
     """The campus of 1,000 scans (seed 3) turns 8-24° per 3 m step at scans 266-269; there every
     fit pairs few points, the octree and feature searches run, and the feature guess pairs scan 268
-    the other way round (170° off) with twice the fitness of the right fit (0.34 against 0.16).
+    in a wrong basin (the other way round, 170° off, or 3 m along the street: RANSAC's threads make
+    it vary) with more fitness than the right fit (0.34 against 0.16).
     With odometry a searched fit is kept only near the odometry prediction, so every step stays on
     the truth; trusting the searches always (the code before) puts a step metres off. The searches
     are forced (a fitness bar no fit reaches until five scans are registered, then the median one)
@@ -486,5 +487,5 @@ def test_searches_in_the_campus_turn_at_scan_269_stay_with_the_odometry(trust: b
         turns.append(float(np.degrees(rotation_angle(error[:3, :3]))))
     if trust:
         assert max(shifts) < 0.2 and max(turns) < 1.0, (shifts, turns)
-    else:  # the situation the bound is for: without it a wrong basin wins
-        assert max(shifts) > 1.0 and max(turns) > 30.0, (shifts, turns)
+    else:  # the situation the bound is for: without it a wrong basin wins, a step metres off
+        assert max(shifts) > 1.0, (shifts, turns)
