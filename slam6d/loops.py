@@ -192,14 +192,14 @@ class LoopCandidates:
         self.radius = config.radius_fraction * max_range
         self.positions = np.array([p[:3, 3] for p in self.poses]).reshape(-1, 3)
         self.travelled = path_lengths(self.poses) if self.poses else np.zeros(0)
-        self._tree = RadiusIndex(self.positions) if len(self.positions) else None
+        self._nearby = RadiusIndex(self.positions) if len(self.positions) else None
 
     def of(self, j: int) -> list[LoopHypothesis]:
         """Earlier scans near scan ``j`` in space and far from it along the path, nearest first."""
-        if self._tree is None:
+        if self._nearby is None:
             return []
         cfg = self.config
-        near = self._tree.within(self.positions[j], self.radius)
+        near = self._nearby.within(self.positions[j], self.radius)
         older = near[near <= j - cfg.min_index_gap]
         dist = np.linalg.norm(self.positions[older] - self.positions[j], axis=1)
         path = self.travelled[j] - self.travelled[older]

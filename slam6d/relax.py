@@ -237,12 +237,12 @@ def neighbour_pairs(
         return []
     extents = np.array([models.extent(k) for k in chosen])
     centres = np.array([poses[k][:3, 3] for k in chosen])
-    tree = RadiusIndex(centres)
+    nearby = RadiusIndex(centres)
     widest = float(extents.max())
 
     def near(a_pos: int) -> NDArray[np.int64]:
         """Positions (in ``chosen``) of the scans whose reach overlaps scan ``chosen[a_pos]``'s."""
-        ball = tree.within(centres[a_pos], extents[a_pos] + widest)
+        ball = nearby.within(centres[a_pos], extents[a_pos] + widest)
         ball = ball[ball != a_pos]
         gaps = np.linalg.norm(centres[ball] - centres[a_pos], axis=1)
         return np.sort(ball[gaps <= extents[a_pos] + extents[ball]])
