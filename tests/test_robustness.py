@@ -284,3 +284,36 @@ def test_indoor_walk_without_odometry_holds_the_height_its_corridor_fits_cannot_
     assert "scan 6 (scan006): its fit barely fixes its translation along the scanner's z (its height)" in result.output
     summary = json.loads((out / "report.json").read_text())["scan_summaries"][6]
     assert summary["weakest_constraint"] < WEAK_CONSTRAINT and summary["held_translations"] == 1
+
+
+def test_octree_search_without_odometry_finds_a_turn_against_the_last_ones_sense(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    """The matrix's indoor VLP-16 hand-held walk without odometry (seed 2, 30 scans), scans 13-15 read
+    back from the files: the hand turns 17° and then 45° the other way, so the constant-velocity
+    prediction of scan 15 repeats the first turn and starts ~60° off; ICP from it fails and the octree
+    search runs. Its ±48° window used to be centred on that prediction, so the turn lay outside it
+    (winner 3.6 m / 90° off) and only the feature guess (FPFH + RANSAC: seconds of CPU) recovered the
+    scan. Centred on the previous scan's attitude, the window holds the turn and the search finds it."""
+    from slam6d.geometry import UOS
+    from slam6d.io.poses import read_kitti_poses
+    from slam6d.io.registry import read_sequence
+    from slam6d.pipeline import Pipeline, PipelineConfig
+    from slam6d.simulate import SimulationConfig, simulate_session
+
+    session = simulate_session(
+        tmp_path, SimulationConfig(seed=2, scans=30, sensor="vlp16", world="indoor", odometry=False)
+    )
+    truth = [UOS.pose_to_canonical(p) for p in read_kitti_poses(session.ground_truth_file)][13:16]
+    steps = [invert(a) @ b for a, b in itertools.pairwise(truth)]
+    turns = [math.degrees(pose_difference(step, np.eye(4))[1]) for step in steps]
+    repeated_off = math.degrees(pose_difference(steps[0], steps[1])[1])
+    assert turns[1] > 40 and repeated_off > 50  # the prediction is as far off as intended
+    pipeline = Pipeline(
+        read_sequence(tmp_path, "uos", first=13, last=15), PipelineConfig(loops=False, relaxation="none")
+    )
+    report = pipeline.run()
+    assert report.failure is None and report.skipped_scans == []
+    scan = pipeline.summaries[2]
+    assert scan.starts_tried[:2] == ["start", "octree"] and scan.start == "octree"
+    assert "features" not in scan.starts_tried
+    metres, radians = pose_difference(invert(pipeline.poses[1]) @ pipeline.poses[2], steps[1])
+    assert metres < 0.08 and math.degrees(radians) < 1.0, (metres, math.degrees(radians))
