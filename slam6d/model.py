@@ -43,7 +43,10 @@ class ModelIndex:
     takes the normals from the cubes of that size instead, or of up to eight times that size where
     the smaller cube holds no plane (:func:`cell_normals` over all the model's points: a multi-beam
     lidar's rings are farther apart than one cube), so the sample only decides which points are
-    paired.
+    paired. ``viewpoint``: where the scanner that took the points stood, in their frame (the origin
+    of a scan's own frame), which lets the cube normals leave out the false level planes its rings
+    make at its own height (:func:`cell_normals`); None where it is unknown or the points come from
+    several scanners.
 
     Everything is built on first use and cached: point-to-point never pays for normals, and normals
     are estimated only for sample points that actually get paired. One index may serve registrations
@@ -59,6 +62,7 @@ class ModelIndex:
         threads: int = 2,
         normal_cell: float = 0.0,
         index: nn.NeighbourIndex | None = None,
+        viewpoint: FloatArray | None = None,
     ) -> None:
         points = np.ascontiguousarray(points, dtype=np.float64)
         if points.ndim != 2 or points.shape[1] != 3:
@@ -71,6 +75,7 @@ class ModelIndex:
         self.backend = backend
         self.threads = int(threads)
         self.normal_cell = float(normal_cell)
+        self.viewpoint = None if viewpoint is None else np.asarray(viewpoint, dtype=np.float64).reshape(3)
         self._lock = threading.RLock()
         if index is not None and len(index) != len(points):
             raise ValueError(f"the shared neighbour index has {len(index)} points, the model {len(points)}")
@@ -127,7 +132,7 @@ class ModelIndex:
                 # all cube normals at once (cheaper than any k-NN estimate), from all the model's points;
                 # where a cube gives none (too few points, an edge) the k-NN estimate is made on demand
                 level = np.zeros(len(self.points), dtype=np.int8)
-                normals, usable = cell_normals(self.points, self.normal_cell, level_out=level)
+                normals, usable = cell_normals(self.points, self.normal_cell, level_out=level, viewpoint=self.viewpoint)
                 self._normals = normals[indices]
                 self._normal_state = usable[indices].astype(np.int8)
                 self._smallest_cube_share = float(np.mean(level[indices] == 1)) if len(indices) else 0.0
