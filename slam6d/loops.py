@@ -36,7 +36,10 @@ rotation by quaternion slerp, and the positions re-chained from each step turned
 share of it, what remains of the translation spread linearly; so the trajectory bends smoothly
 instead of jumping at scan j, and a height error that a steady pitch drift built up along the
 path is taken out where it arose (:func:`diffuse_loop_correction`). Scans after j take the full
-correction, which keeps the trajectory continuous.
+correction, which keeps the trajectory continuous. Diffusion moves only the scans after i, so a
+later loop that starts inside an earlier one pulls the earlier loop's ends apart again; the
+pipeline therefore solves every loop closed so far and the registered steps as one pose graph
+after each closing, from the diffused poses (:func:`hold_closed_loops`).
 """
 
 from __future__ import annotations

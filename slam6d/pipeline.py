@@ -552,12 +552,13 @@ class Pipeline:
         Where sequential registration fuses (the scan cannot find its planes alone), the scans on
         either side of it fused with it (``fused_scans`` of them, scan ``index`` last, so the union
         lies in its frame); otherwise the scan's own model. Two reasons, both measured on the
-        1,000-scan campus (docs/scale.md, "Which revisits close"): one VLP-16 scan pairs a revisit's
-        points far more sparsely than the fused metascan registration matched against, so its ICP
-        fitness fell under a bar scaled by registration's fitness (0.4 x 0.58) on revisits whose
-        relative pose was right to 1-5 cm; and its rings' own planes tilt the match (the loops
-        closed were 0.1-0.6° off the true relative tilt), which the closing then swings the rest of
-        the path by. Fused, the loop's fitness is measured as the bar's scale was.
+        1,000-scan campus (docs/scale.md, "Which revisits close, and what keeps them closed"): one
+        VLP-16 scan pairs a revisit's points far more sparsely than the fused metascan registration
+        matched against, so its ICP fitness fell under a bar scaled by registration's fitness
+        (0.4 x 0.58) on revisits whose relative pose was right to 1-5 cm; and its rings' own planes
+        tilt the match (the loops closed were 0.1-0.6° off the true relative tilt), which the
+        closing then swings the rest of the path by. Fused, the loop's fitness is measured as the
+        bar's scale was.
         """
         count = self.config.fused_scans
         if count <= 1 or not self._needs_fusing(index):
