@@ -198,7 +198,7 @@ def test_campus_ramp_revisits_close_right_against_the_fused_neighbourhood(campus
     though many were right to 2-3 cm, and all were 0.1-0.55° off the true relative tilt (the rings'
     own planes; the one closed 0.21°). Verified against scan i fused with its neighbours, as
     registration matched, every tried revisit closes (measured: 5 of 5) and each is right to
-    3.4 cm and 0.13°."""
+    3.4 cm and 0.13° (asked: 5 cm and 0.2°)."""
     sim, _ = campus_ramp
     pipeline = Pipeline(sim.sequence, PipelineConfig(relaxation="none"))
     pipeline.run()
@@ -208,7 +208,7 @@ def test_campus_ramp_revisits_close_right_against_the_fused_neighbourhood(campus
     for loop in closed:
         assert loop.transform is not None
         dt, dr = pose_difference(loop.transform, invert(sim.truth[loop.i]) @ sim.truth[loop.j])
-        assert dt < 0.05 and np.degrees(dr) < 0.15, (loop.i, loop.j, dt, np.degrees(dr))
+        assert dt < 0.05 and np.degrees(dr) < 0.2, (loop.i, loop.j, dt, np.degrees(dr))
 
 
 def test_holding_closed_loops_keeps_an_earlier_loop_that_a_later_closing_breaks() -> None:
