@@ -70,6 +70,7 @@ from slam6d.loops import (
     diffuse_loop_correction,
     find_loop_hypotheses,
     hold_closed_loops,
+    lever_arm,
     loop_correction,
     octree_overlap,
     usual_fit,
@@ -756,13 +757,9 @@ class Pipeline:
         return float(np.linalg.norm(off[:3, 3])) <= shift_limit and rotation_angle(off[:3, :3]) <= turn_limit
 
     def _lever(self) -> float:
-        """How far a scan's points lie from its origin (metres, the median over the scans of their RMS
-        distance): the arm by which a turn moves them, which weighs rotations in
-        :func:`slam6d.loops.hold_closed_loops`."""
+        """:func:`slam6d.loops.lever_arm` of the reduced scans, measured once."""
         if self._lever_arm is None:
-            sample = np.unique(np.linspace(0, len(self.sequence) - 1, min(25, len(self.sequence))).round().astype(int))
-            arms = [np.sqrt(np.mean(np.einsum("ij,ij->i", p, p))) for p in (self.models.points[k] for k in sample)]
-            self._lever_arm = max(float(np.median(arms)), 1e-3)
+            self._lever_arm = lever_arm(self.models.points)
         return self._lever_arm
 
     def _occupancy_of(self, index: int) -> Occupancy:
