@@ -44,6 +44,16 @@ that decides whether the solve needs windows or a hierarchy (docs/scale.md).
 * the effect: ``slam6d``'s sequential registration alone (no loops, no relaxation) over the same
   scans: per-step error RMS, and the ATE split into horizontal and vertical.
 
+``--loop-report`` adds, after each campus run, where its error lies and what the loops did, from
+the files the run wrote and the simulator's ground truth: the ATE split into horizontal and
+vertical after registration, after loop closing and after relaxation; the revisits of the truth
+(scans within 10 m across and 2 m in height of one at least ``min_path`` back, grouped into
+stretches; how many the loop stage tried, closed, and why it refused the others); and per closed
+loop how far its verified transform is from the true relative pose and how far the final poses
+keep it. ``--relax-from-truth`` instead runs ``slam6d run``'s relaxation (LUM with the run's models
+and settings) from each campus session's ground truth and prints how far it moves away: the
+relaxation's own bias, which no registration or loop closing upstream can remove.
+
 Run: ``.venv/bin/python benchmarks/scale.py --work /tmp/scale --loop 100 200 400 --campus 250 500 1000``;
 ``.venv/bin/python benchmarks/scale.py --work /tmp/scale --loop --campus 250 500 --profile-relaxation``;
 ``.venv/bin/python benchmarks/scale.py --work /tmp/scale --per-step 100``.
@@ -56,6 +66,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import resource
 import subprocess
 import sys
@@ -66,7 +77,7 @@ from typing import Any
 import numpy as np
 
 from slam6d import nn
-from slam6d.geometry import UOS, Matrix, invert, transform_points
+from slam6d.geometry import UOS, Matrix, invert, path_lengths, pose_difference, transform_points
 from slam6d.icp import point_to_plane_step
 from slam6d.io.frames import FrameType, read_frames
 from slam6d.io.poses import read_kitti_poses
@@ -97,6 +108,7 @@ class Run:
     unrelaxed_ate_cm: float  # before the relaxation stage: registration and loop closing alone
     load: float
     poses: np.ndarray  # scan positions, metres
+    out: Path  # what the run wrote
 
 
 def cli(*arguments: str) -> subprocess.CompletedProcess[str]:
@@ -136,6 +148,7 @@ def run(directory: Path, case: str, scans: int, extra: list[str]) -> Run:
         100 * absolute_trajectory_error(unrelaxed, truth).rmse,
         os.getloadavg()[0],
         np.array([p[:3, 3] for p in estimate]),
+        out,
     )
 
 
@@ -150,6 +163,98 @@ def unrelaxed_pose(frames: Path) -> np.ndarray:
     return next(pose for pose, kind in reversed(entries) if kind not in (FrameType.LUM, FrameType.ICP_INACTIVE))
 
 
+def registered_pose(frames: Path) -> np.ndarray:
+    """A scan's pose as sequential registration left it: its last entry before any loop closing or relaxation."""
+    entries = read_frames(frames)
+    later = next((n for n, (_, kind) in enumerate(entries) if kind in LATER), len(entries))
+    return entries[max(later, 1) - 1][0]
+
+
+LATER = (FrameType.ELCH, FrameType.LUM)  # the stages after registration that write a scan's pose
+REVISIT_ACROSS = 10.0  # metres: a truth revisit lies this close across ...
+REVISIT_HEIGHT = 2.0  # ... and this close in height (the campus's street under its deck is 3.9 m below the roof)
+
+
+def split_ate(estimate: list[Matrix], truth: list[Matrix]) -> str:
+    """ATE rmse after rigid alignment, and its horizontal and vertical parts (cm)."""
+    est, ref = np.array([p[:3, 3] for p in estimate]), np.array([p[:3, 3] for p in truth])
+    alignment = rigid_alignment(est, ref)
+    off = est @ alignment[:3, :3].T + alignment[:3, 3] - ref
+    across, up = np.sqrt(np.mean((off[:, :2] ** 2).sum(axis=1))), np.sqrt(np.mean(off[:, 2] ** 2))
+    return f"{100 * np.sqrt(across**2 + up**2):.1f} cm ({100 * across:.1f} across / {100 * up:.1f} height)"
+
+
+def _closed_and_refused(hypotheses: list[dict[str, Any]]) -> str:
+    """How many of ``hypotheses`` (a run report's loops) closed, and the tests the others failed, as
+    two table cells."""
+    reasons: dict[str, int] = {}
+    for h in hypotheses:
+        if not h["accepted"]:
+            name = re.split(r"[\d(:]", h["reason"])[0].strip()  # the test, without its figures
+            reasons[name] = reasons.get(name, 0) + 1
+    refused = ", ".join(f"{k} ({v})" for k, v in sorted(reasons.items(), key=lambda kv: -kv[1])) or "-"
+    return f"{sum(h['accepted'] for h in hypotheses)} | {refused}"
+
+
+def loop_report(directory: Path, out: Path) -> None:
+    """Where a campus run's error lies and what its loops did (module docstring, ``--loop-report``)."""
+    report = json.loads((out / "report.json").read_text())
+    names = scan_names(report)
+    truth = [UOS.pose_to_canonical(p) for p in read_kitti_poses(directory / "ground_truth_kitti.txt")]
+    stages = {
+        "registration": [UOS.pose_to_canonical(registered_pose(out / f"{n}.frames")) for n in names],
+        "loop closing": [UOS.pose_to_canonical(unrelaxed_pose(out / f"{n}.frames")) for n in names],
+        "relaxation": [UOS.pose_to_canonical(p) for p in read_kitti_poses(out / "poses_kitti.txt")],
+    }
+    print(f"\n{directory.name}: ATE after " + "; ".join(f"{k} {split_ate(v, truth)}" for k, v in stages.items()))
+    settings = report["settings"]["loop"]
+    where = np.array([p[:3, 3] for p in truth])
+    travelled = path_lengths(truth)
+    revisits: dict[int, bool] = {}  # revisiting scan -> whether it faces the other way than the place's first scan
+    for j in range(len(truth)):
+        gap = where[:j] - where[j]
+        across = np.linalg.norm(gap[:, :2], axis=1)
+        path = travelled[j] - travelled[:j]
+        far_along = (path >= settings["min_path"]) & (path >= settings["min_path_factor"] * np.linalg.norm(gap, axis=1))
+        near = np.flatnonzero((across < REVISIT_ACROSS) & (np.abs(gap[:, 2]) < REVISIT_HEIGHT) & far_along)
+        if len(near):
+            first = near[np.argmin(across[near])]
+            revisits[j] = float(truth[first][:3, 0] @ truth[j][:3, 0]) < 0
+    stretches: list[list[int]] = []
+    for j in revisits:
+        if stretches and j - stretches[-1][-1] <= 2:
+            stretches[-1].append(j)
+        else:
+            stretches.append([j])
+    print("| revisiting scans (truth) | of them the other way | tried | closed | refused for |")
+    print("|---|---|---|---|---|")
+    for stretch in stretches:
+        hyps = [h for h in report["loops"] if h["j"] in stretch]
+        label = f"{stretch[0]}-{stretch[-1]} ({len(stretch)})"
+        print(f"| {label} | {sum(revisits[j] for j in stretch)} | {len(hyps)} | {_closed_and_refused(hyps)} |")
+    elsewhere = [h for h in report["loops"] if h["j"] not in revisits]
+    if elsewhere:
+        print(f"| no revisit in the truth | | {len(elsewhere)} | {_closed_and_refused(elsewhere)} |")
+    closed_loops = [h for h in report["loops"] if h["accepted"]]
+    if not closed_loops:
+        print("no loop closed")
+        return
+    verified, kept = [], []
+    for h in closed_loops:
+        true_relative = invert(truth[h["i"]]) @ truth[h["j"]]
+        verified.append(pose_difference(np.array(h["transform"]), true_relative))
+        final = stages["relaxation"]
+        kept.append(pose_difference(invert(final[h["i"]]) @ final[h["j"]], true_relative))
+    off = np.array(verified)
+    held = np.array(kept)
+    print(
+        f"{len(closed_loops)} loops closed; verified transform vs the true relative pose: median"
+        f" {100 * np.median(off[:, 0]):.1f} cm / {np.degrees(np.median(off[:, 1])):.2f}°, worst"
+        f" {100 * off[:, 0].max():.1f} cm / {np.degrees(off[:, 1].max()):.2f}°; the final poses keep them to"
+        f" {100 * np.median(held[:, 0]):.1f} cm median, {100 * held[:, 0].max():.1f} cm worst"
+    )
+
+
 RELAXATION_PARTS = {  # (module, function) whose cumulative time makes up each part of the split
     "rounds' queries and blocks": [("lum.py", "_scan_system"), ("lum.py", "_remote_scan_system")],
     "neighbour graph": [("relax.py", "neighbour_pairs")],
@@ -157,6 +262,25 @@ RELAXATION_PARTS = {  # (module, function) whose cumulative time makes up each p
     "block pattern": [("block_system.py", "__init__")],
     "factorise and solve": [("block_system.py", "solve")],
 }
+
+
+def relax_from_truth(directory: Path) -> None:
+    """``slam6d run``'s relaxation (its settings, models and links) started from the ground truth:
+    how far the relaxation's own minimum lies from the truth, whatever registration and loop
+    closing hand it."""
+    from slam6d.io.registry import read_sequence
+    from slam6d.pipeline import Pipeline, PipelineConfig
+    from slam6d.relaxation_methods import relax_poses
+
+    config = PipelineConfig()
+    pipeline = Pipeline(read_sequence(directory, "uos"), config)
+    truth = [UOS.pose_to_canonical(p) for p in read_kitti_poses(directory / "ground_truth_kitti.txt")]
+    if config.relax_registration_models:  # as the relaxation stage hands them over
+        for k in range(len(pipeline.sequence)):
+            pipeline.models.share_plane_model(k, pipeline.registration_model(k))
+    links = [(k - 1, k) for k in range(1, len(truth))]  # what registration relates: each scan to the one before
+    result = relax_poses(config.relaxation, pipeline.models, truth, links=links, config=config.relax)
+    print(f"| {directory.name} | {split_ate(result.poses, truth)} | {result.iterations} | {os.getloadavg()[0]:.1f} |")
 
 
 def profile_relaxation(directory: Path) -> None:
@@ -341,6 +465,12 @@ def main() -> None:
         "--profile-relaxation", action="store_true", help="profile LUM relaxation on the campus sessions instead"
     )
     parser.add_argument("--per-step", type=int, metavar="N", help="only the campus's per-step error tables on N scans")
+    parser.add_argument(
+        "--loop-report", action="store_true", help="after each campus run: its error by stage, revisits and loops"
+    )
+    parser.add_argument(
+        "--relax-from-truth", action="store_true", help="only: the run's relaxation started from the campus's truth"
+    )
     args = parser.parse_args()
     if args.profile_relaxation:
         print(f"LUM relaxation under cProfile, {os.cpu_count()} cores (cProfile itself adds some time)")
@@ -348,6 +478,12 @@ def main() -> None:
         print("|---|---|---|---|---|---|---|")
         for scans in args.campus:
             profile_relaxation(session(args.work, "campus", scans))
+        return
+    if args.relax_from_truth:
+        print("| session | ATE after relaxing the truth (across / height) | rounds | load |")
+        print("|---|---|---|---|")
+        for scans in args.campus:
+            relax_from_truth(session(args.work, "campus", scans))
         return
     if args.per_step:
         per_step(args.work, args.per_step)
@@ -368,6 +504,8 @@ def main() -> None:
                 f" | {r.ate_cm:.2f} cm | {r.unrelaxed_ate_cm:.2f} cm | {r.load:.1f} |",
                 flush=True,
             )
+            if args.loop_report and case == "campus":
+                loop_report(directory, r.out)
             if args.scheduler:
                 d = run(directory, case, scans, [*extra, "--scheduler", args.scheduler])
                 apart = float(np.linalg.norm(d.poses - r.poses, axis=1).max())
