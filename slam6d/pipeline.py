@@ -519,7 +519,7 @@ class Pipeline:
         if self.config.matching == "pairwise":
             return self.registration_model(index - 1), self.poses[index - 1], [index - 1]
         if self.config.fused_scans > 1 and index >= 2 and self._needs_fusing(index - 1):
-            fused = list(range(max(0, index - self.config.fused_scans), index))
+            fused = self._fused_members(index - 1)
             return self._fused_model(fused), self.poses[index - 1], fused
         members = list(range(max(0, index - self.config.metascan_scans), index))
         stack = StackedModel([self.registration_model(k) for k in members], [self.poses[k] for k in members])
@@ -532,6 +532,10 @@ class Pipeline:
         them time for nothing (BALM's hall: RPE 0.57 instead of 0.54 cm, registration ~3x)."""
         share = self.registration_model(index).smallest_cube_share
         return share is not None and share < FUSE_BELOW_CUBE_SHARE
+
+    def _fused_members(self, last: int) -> list[int]:
+        """The scans a fused metascan ending at scan ``last`` joins: the ``fused_scans`` up to it."""
+        return list(range(max(0, last + 1 - self.config.fused_scans), last + 1))
 
     def _fused_model(self, members: list[int]) -> ModelIndex:
         """The metascan as one model (``fused_scans``): :func:`slam6d.model.fused_model` of the
@@ -590,6 +594,36 @@ class Pipeline:
         first = min(max(0, index - count // 2), max(0, len(self.sequence) - count))
         members = [k for k in range(first, min(first + count, len(self.sequence))) if k != index] + [index]
         return self._fused_model(members)
+
+    def share_relaxation_models(self) -> None:
+        """Hand LUM the models its rounds pair each scan's later neighbours against
+        (:meth:`slam6d.relax.ScanModels.share_plane_model`), built from the current poses.
+
+        A scan that finds its planes alone gets its registration model (plane sample and cube
+        normals built already). Where sequential registration fused (:meth:`_needs_fusing`: a
+        VLP-16 outdoors), scan k gets the metascan scan k+1 was registered against: scans
+        k-``fused_scans``+1 ... k fused in k's frame. Against one scan's rings the relaxation has a
+        bias of its own - the rings' own planes tilt the pairs as they tilted registration's - which
+        started from the campus's truth turned consecutive scans 0.031° RMS apart (250 scans) and
+        left the 1,000 5.2 cm off (docs/scale.md, "Relaxing against the fused neighbourhood").
+
+        Only the scans *before* k are fused with it: a round pairs the points of scan j > k with
+        k's model (:func:`slam6d.relax.neighbour_pairs` orders every pair so), and a model holding
+        j's own points would pair them with themselves and hold the pair at the relative pose the
+        model was built at. The members are fused at the poses they have when this is called
+        (after loop closing); the relaxation moves them afterwards, but consecutive scans' relative
+        poses change by far less than the 0.2 m plane sample (the campus: ~1 cm and 0.01°), so the
+        fused surfaces stay where they were to well within the pairs' robust scale.
+        """
+        fuse = self.config.fused_scans > 1
+        for k in range(len(self.sequence)):
+            if fuse and k >= 1 and self._needs_fusing(k):
+                members = self._fused_members(k)
+                self.models.share_plane_model(k, self._fused_model(members), fused_with=members[:-1])
+                continue
+            model = self.registration_model(k)
+            if model is not self.models.index(k):
+                self.models.share_plane_model(k, model)
 
     def _guess(self, index: int, start_world: Matrix) -> GuessResult:
         """Octree search against the previous scan (own frame) around :meth:`_search_centre`; returns
@@ -884,10 +918,7 @@ class Pipeline:
             progress.append(RelaxationProgressed(iteration, residual, moved))
 
         if self.config.relaxation == "lum" and self.config.relax_registration_models:
-            for k in range(len(self.sequence)):
-                model = self.registration_model(k)
-                if model is not self.models.index(k):
-                    self.models.share_plane_model(k, model)
+            self.share_relaxation_models()
         # the graph method relaxes over the trajectory and the loops this run accepted
         edges = trajectory_graph(
             len(self.sequence), [GraphEdge(h.i, h.j, h.transform) for h in self.loops if h.accepted]
