@@ -152,7 +152,7 @@ def chain_seconds(case: Case) -> tuple[float, float]:
     return time.perf_counter() - wall, time.process_time() - cpu
 
 
-RUN_STARTUP = f"import slam6d.cli, slam6d.pipeline, slam6d.io.registry; {FIRST_CALL}"
+RUN_STARTUP = f"import slam6d.cli, slam6d.pipeline, slam6d.io.registry\n{FIRST_CALL}"
 """What every ``slam6d run`` process pays before its first scan: the interpreter, the CLI and the
 engine's imports (numpy, numba) and numba's first call (its compiler registries, scipy's BLAS
 bindings loaded alone before it as the command does; the kernels then load from the cache)."""

@@ -19,7 +19,10 @@ The engine's bytecode is written first (``make bytecode``), as an install writes
 kernels must be compiled already (``make kernels``, or any earlier run), else the first row that
 calls one pays the compilation.
 
-    .venv/bin/python benchmarks/startup.py [--repeats 7]
+    .venv/bin/python benchmarks/startup.py [--repeats 7] [--against ../before]
+
+``--against`` measures another checkout (``git worktree add ../before COMMIT``) in alternation with
+this one, each process of one followed by the same process of the other, so both see the same load.
 """
 
 from __future__ import annotations
@@ -40,10 +43,17 @@ sys.path.insert(0, str(ROOT))
 
 from benchmarks.trajectory import load  # noqa: E402
 
-FIRST_CALL = (
-    "import numpy as np; from slam6d.numba_blas import load_blas_bindings; load_blas_bindings(); "
-    "from slam6d.octree import reduce_points; reduce_points(np.zeros((10, 3)), 0.1)"
-)
+FIRST_CALL = """
+import numpy as np
+try:
+    from slam6d.numba_blas import load_blas_bindings
+except ImportError:  # a checkout from before it (--against)
+    pass
+else:
+    load_blas_bindings()
+from slam6d.octree import reduce_points
+reduce_points(np.zeros((10, 3)), 0.1)
+"""
 """numba's first call as ``slam6d run`` makes it (``benchmarks/robustness.py`` counts it in the
 start-up it takes off the run's CPU time)."""
 
@@ -70,53 +80,62 @@ def children_cpu() -> float:
     return usage.ru_utime + usage.ru_stime
 
 
-def cost_of(command: list[str]) -> tuple[float, float]:
-    """CPU seconds (user + system) and wall seconds of one process running ``command``."""
+def cost_of(command: list[str], tree: Path) -> tuple[float, float]:
+    """CPU seconds (user + system) and wall seconds of one process running ``command`` on the engine
+    in ``tree``."""
     before, began = children_cpu(), time.perf_counter()
-    subprocess.run(
-        command,
-        check=True,
-        capture_output=True,
-        cwd=ROOT,
-        env=os.environ | {"PYTHONPATH": str(ROOT)},
-    )
+    subprocess.run(command, check=True, capture_output=True, cwd=tree, env=os.environ | {"PYTHONPATH": str(tree)})
     return children_cpu() - before, time.perf_counter() - began
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--repeats", type=int, default=7, help="processes per phase (the median is shown)")
+    parser.add_argument(
+        "--against",
+        type=Path,
+        help="another checkout (git worktree add ../before COMMIT): measured in alternation with this one,"
+        " process by process, for a before/after table at the same load",
+    )
     args = parser.parse_args()
-    compileall.compile_dir(ROOT / "slam6d", quiet=1)
+    trees = [ROOT] if args.against is None else [ROOT, args.against.resolve()]
+    for tree in trees:
+        compileall.compile_dir(tree / "slam6d", quiet=1)
     with tempfile.TemporaryDirectory() as tmp:
         session, out = Path(tmp) / "session", Path(tmp) / "out"
         simulate = ["simulate", str(session), "--world", "outdoor", "--sensor", "vlp16", "--scans", "10", "--seed", "1"]
-        cost_of([sys.executable, "-m", "slam6d.cli", *simulate, "--no-odometry"])
+        cost_of([sys.executable, "-m", "slam6d.cli", *simulate, "--no-odometry"], ROOT)
         run = [sys.executable, "-m", "slam6d.cli", "run", str(session), "--format", "uos", "--out", str(out)]
-        cost_of(run)  # compiles any kernel not cached yet
+        for tree in trees:
+            cost_of(run, tree)  # compiles any kernel not cached yet
         steps = phases(session, out)
-        commands = [[sys.executable, "-c", "; ".join(code for _, code in steps[: k + 1])] for k in range(len(steps))]
+        commands = [[sys.executable, "-c", "\n".join(code for _, code in steps[: k + 1])] for k in range(len(steps))]
         commands.append(run)
-        cpu: list[list[float]] = [[] for _ in commands]
-        wall: list[list[float]] = [[] for _ in commands]
+        # [tree][command] -> CPU and wall seconds of each repeat
+        cpu: list[list[list[float]]] = [[[] for _ in commands] for _ in trees]
+        wall: list[list[list[float]]] = [[[] for _ in commands] for _ in trees]
         for _ in range(args.repeats):
             for k, command in enumerate(commands):
-                seconds = cost_of(command)
-                cpu[k].append(seconds[0])
-                wall[k].append(seconds[1])
-    cpu_medians = [statistics.median(c) for c in cpu]
-    wall_medians = [statistics.median(w) for w in wall]
+                for t, tree in enumerate(trees):
+                    seconds = cost_of(command, tree)
+                    cpu[t][k].append(seconds[0])
+                    wall[t][k].append(seconds[1])
     print(f"Seconds of a fresh process, median of {args.repeats} ({load()})")
-    print(f"  {'phase':55s} {'CPU':>6s} {'wall':>6s}   cumulative CPU, wall")
-    previous = (0.0, 0.0)
-    for (name, _), cumulative in zip(steps, zip(cpu_medians, wall_medians, strict=True), strict=False):
-        print(
-            f"  {name:55s} {cumulative[0] - previous[0]:6.3f} {cumulative[1] - previous[1]:6.3f}"
-            f"   ({cumulative[0]:.3f}, {cumulative[1]:.3f})"
-        )
-        previous = cumulative
-    for name, k in (("before the first scan", len(steps) - 1), ("slam6d run, 10-scan outdoor VLP-16, no odometry", -1)):
-        print(f"  {name:55s} {cpu_medians[k]:6.3f} {wall_medians[k]:6.3f}")
+    for t, tree in enumerate(trees):
+        cpu_medians = [statistics.median(c) for c in cpu[t]]
+        wall_medians = [statistics.median(w) for w in wall[t]]
+        print(f"{tree}:" if len(trees) > 1 else "")
+        print(f"  {'phase':55s} {'CPU':>6s} {'wall':>6s}   cumulative CPU, wall")
+        previous = (0.0, 0.0)
+        for (name, _), cumulative in zip(steps, zip(cpu_medians, wall_medians, strict=True), strict=False):
+            print(
+                f"  {name:55s} {cumulative[0] - previous[0]:6.3f} {cumulative[1] - previous[1]:6.3f}"
+                f"   ({cumulative[0]:.3f}, {cumulative[1]:.3f})"
+            )
+            previous = cumulative
+        last_rows = (("before the first scan", len(steps) - 1), ("slam6d run, 10-scan outdoor VLP-16, no odometry", -1))
+        for name, k in last_rows:
+            print(f"  {name:55s} {cpu_medians[k]:6.3f} {wall_medians[k]:6.3f}")
 
 
 if __name__ == "__main__":
