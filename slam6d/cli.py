@@ -112,6 +112,7 @@ def match(
     """Register DATA onto MODEL; print the 4x4 transform (row-major, the files' own units) mapping DATA into MODEL."""
     from slam6d.icp import ICPConfig
     from slam6d.io.registry import ReadOptions, read_scan, resolve_format
+    from slam6d.numba_blas import load_blas_bindings
     from slam6d.pair import GUESS_CHOICES, register_pair
     from slam6d.trace import write_trace
 
@@ -123,6 +124,7 @@ def match(
         raise typer.BadParameter(str(exc)) from None
     if guess not in GUESS_CHOICES:
         raise typer.BadParameter(f"--guess must be one of {', '.join(GUESS_CHOICES)}, got {guess!r}")
+    load_blas_bindings()  # before numba's first call: 0.15 s of scipy.linalg it never uses
     conventions = [resolve_format(path, fmt).convention for path in (model, data)]
     options = ReadOptions(min_range=min_range, max_range=max_range)
     model_scan, data_scan = (read_scan(path, fmt, options) for path in (model, data))
@@ -402,6 +404,7 @@ def run(
 
     from slam6d.io.order import SCAN_ORDERS
     from slam6d.io.registry import ReadOptions, read_sequence, resolve_format
+    from slam6d.numba_blas import load_blas_bindings
 
     if order not in SCAN_ORDERS:
         raise typer.BadParameter(f"--order must be one of {', '.join(SCAN_ORDERS)}, got {order!r}")
@@ -439,13 +442,13 @@ def run(
             budget = parse_bytes(memory_budget)
         except ValueError as exc:
             raise typer.BadParameter(str(exc), param_hint="--memory-budget") from None
+    load_blas_bindings()  # before numba's first call: 0.15 s of scipy.linalg it never uses
     began = time.perf_counter()
     store = None
     if source.exists():
         resolve_format(source, fmt)  # loads the format modules here, so the thread below never waits on one
-    # The engine (scipy, numba's compiler registries: ~0.4 s of imports) loads and checks the options on
-    # a thread while the scans are read, which is mostly compiled parsing without the GIL. Bad options
-    # stop the reading at the next scan.
+    # The engine's modules load and the options are checked on a thread while the scans are read, which is
+    # mostly compiled parsing without the GIL. Bad options stop the reading at the next scan.
     with ThreadPoolExecutor(1) as pool:
         configured = pool.submit(make_config)
 
@@ -558,11 +561,13 @@ def relax(
     """Relax a session's current revision with its [engine] settings: the workbench's Relax, from the shell."""
     from slam6d.engine_settings import pipeline_config
     from slam6d.io.poses import write_kitti_poses
+    from slam6d.numba_blas import load_blas_bindings
     from slam6d.relaxation_methods import reduced_models, relax_poses
     from slam6d.residuals import displacements
     from slam6d.session import Session
     from slam6d.session_graph import graph_edges, sequential_links
 
+    load_blas_bindings()  # before numba's first call: 0.15 s of scipy.linalg it never uses
     session = Session.open(session_dir)
     config = pipeline_config(session.config.engine)
     with progress_bar("reading scans") as update:
