@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import os
 import sys
 from collections.abc import Iterator
@@ -395,6 +396,14 @@ def run(
             " processes here, tcp://HOST:PORT joins a running scheduler."
         ),
     ] = None,
+    tilt_noise_deg: Annotated[
+        float | None,
+        typer.Option(
+            help="The odometry's roll and pitch are an inclinometer's readings with this noise (degrees): a prior"
+            " on every scan's tilt in registration and LUM. Default: what the session declares (a simulated"
+            " session's simulation.json), else none; 0 = ignore a declared one."
+        ),
+    ] = None,
 ) -> None:
     """Register a whole sequence: sequential ICP, loop closing, global relaxation; write the trajectory."""
     import time
@@ -405,6 +414,16 @@ def run(
 
     if order not in SCAN_ORDERS:
         raise typer.BadParameter(f"--order must be one of {', '.join(SCAN_ORDERS)}, got {order!r}")
+
+    if tilt_noise_deg is not None and not (tilt_noise_deg >= 0 and math.isfinite(tilt_noise_deg)):
+        raise typer.BadParameter(
+            f"must be a number of degrees >= 0, got {tilt_noise_deg}", param_hint="--tilt-noise-deg"
+        )
+    if tilt_noise_deg is None:
+        from slam6d.attitude import declared_tilt_noise
+
+        tilt_noise_deg = declared_tilt_noise(source) if source.exists() else None
+    tilt = tilt_noise_deg or None  # 0: the user says the readings are none
 
     def make_config() -> Any:
         from slam6d.engine_settings import pipeline_config
@@ -421,6 +440,7 @@ def run(
                 "loops": loops,
                 "loop_closing": loop_closing,
                 "relaxation": relaxation,
+                "tilt_noise_deg": tilt,
             }
         )
 

@@ -40,6 +40,7 @@ from typing import Any
 
 import numpy as np
 
+from slam6d.attitude import REGISTRATION_TILT_DEG, TiltPrior, heading_only
 from slam6d.errors import DisconnectedGraphError, RegistrationError, RelaxationError, Slam6dError
 from slam6d.events import (
     Event,
@@ -172,6 +173,13 @@ class PipelineConfig:
     walks, every car session) have 5-25 % and are never held. With 1.5 % the matrix's indoor VLP-16
     seed 2 walk still ended 15 cm off; with 2.5 % all four indoor walks without odometry end at
     0.9-3.3 cm (docs/robustness.md, "Indoor hand-held walks without odometry").
+    ``tilt_noise_deg``: the odometry poses' roll and pitch are an inclinometer's readings with this
+    noise (degrees), absolute rather than accumulated; each scan's measured up is then a prior on
+    its roll and pitch in sequential ICP and in the ``lum`` and ``graph`` relaxations, weighed against
+    ``registration_tilt_deg``, the registration's own tilt error per step (:mod:`slam6d.attitude`
+    explains the weighting). None (the default) uses no tilt: wheel odometry's zeros and a gyro's
+    drifting integral are no measurement of it. ``slam6d run`` sets it from the session's
+    declaration (the simulator's ``simulation.json``) or ``--tilt-noise-deg``.
     """
 
     voxel_size: float = 0.1
@@ -196,6 +204,8 @@ class PipelineConfig:
     odometry_trust_m: float = 0.3
     odometry_trust_deg: float = 3.0
     hold_constraint: float = 0.025
+    tilt_noise_deg: float | None = None
+    registration_tilt_deg: float = REGISTRATION_TILT_DEG
     loop: LoopConfig = field(default_factory=LoopConfig)
     relax: RelaxationConfig = field(default_factory=RelaxationConfig)
 
@@ -231,6 +241,14 @@ class PipelineConfig:
             raise ValueError(f"fused_scans must be >= 0 (0 or 1 = never fuse), got {self.fused_scans}")
         if self.max_range is not None and not self.max_range > 0:
             raise ValueError(f"max_range must be positive, got {self.max_range}")
+        if self.tilt_noise_deg is not None and not (self.tilt_noise_deg > 0 and math.isfinite(self.tilt_noise_deg)):
+            raise ValueError(
+                f"tilt_noise_deg must be a positive number of degrees (or unset: no inclinometer), got {self.tilt_noise_deg}"
+            )
+        if not (self.registration_tilt_deg > 0 and math.isfinite(self.registration_tilt_deg)):
+            raise ValueError(
+                f"registration_tilt_deg must be a positive number of degrees, got {self.registration_tilt_deg}"
+            )
 
 
 # ---------------------------------------------------------------- the pipeline
@@ -257,6 +275,12 @@ class Pipeline:
         self.odometry: list[Matrix] = [scan.pose.copy() for scan in sequence]
         self.has_odometry = [bool(scan.has_pose) for scan in sequence]
         self.poses: list[Matrix] = [p.copy() for p in self.odometry]
+        # the odometry's roll and pitch as an inclinometer's readings, where the session has one
+        self.tilt: TiltPrior | None = None
+        if config.tilt_noise_deg is not None and any(self.has_odometry):
+            self.tilt = TiltPrior.from_poses(
+                self.odometry, self.has_odometry, config.tilt_noise_deg, config.registration_tilt_deg
+            )
         self.history: list[list[tuple[Matrix, int]]] = [[(p.copy(), FrameType.ICP_INACTIVE)] for p in self.poses]
         self.registered = 1  # scan 0 anchors the map
         self.done = False
@@ -574,7 +598,8 @@ class Pipeline:
         # previous scan's position: see PipelineConfig.hold_constraint
         anchor = None if self._odometry_step(index) else (model_from_world @ self.poses[index - 1])[:3, 3]
         try:
-            for iteration in icp_iterations(model, data, model_from_world @ start_world, config, anchor):
+            tilt = None if self.tilt is None else self.tilt.for_fit(index, world_from_model)
+            for iteration in icp_iterations(model, data, model_from_world @ start_world, config, anchor, tilt):
                 iterations.append(iteration)
                 pose = world_from_model @ iteration.transform
                 self._set_pose(index, pose, FrameType.ICP)
@@ -785,7 +810,10 @@ class Pipeline:
             if accepted and self.config.loop_closing:
                 loop = accepted[0]
                 before = [p.copy() for p in self.poses]
-                corrected = diffuse_loop_correction(self.poses, loop.i, loop.j, loop_correction(self.poses, loop))
+                correction = loop_correction(self.poses, loop)
+                if self.tilt is not None:  # the measured tilt stays (attitude.heading_only)
+                    correction = heading_only(correction, self.poses[loop.j][:3, 3])
+                corrected = diffuse_loop_correction(self.poses, loop.i, loop.j, correction)
                 displacement = []
                 for k, pose in enumerate(corrected):
                     moved = float(np.linalg.norm(pose[:3, 3] - before[k][:3, 3]))
@@ -826,6 +854,7 @@ class Pipeline:
                 members=members,
                 links=self.links,  # a sequential registration is an edge, however sparse the overlap
                 scheduler=self.scheduler,
+                tilt=self.tilt if self.config.relaxation != "simultaneous" else None,
             )
 
         disconnected: DisconnectedGraphError | None = None
