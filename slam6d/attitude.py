@@ -21,11 +21,16 @@ and a 0.3° inclinometer would weigh nothing beside it. It is not worth that muc
 errors are systematic (the rings' normals, the same for every pair on the same surface), and the
 tilt of a step is known to ``registration_deg`` (0.1° RMS per step on the campus, matched from the
 truth; the pairs' own covariance claims ~0.001°). So the pairs' tilt information, whatever its
-absolute scale, is taken to stand for that per-step error, and the prior gets
-``(registration_deg / noise_deg)²`` times it: the fit then mixes the registration's tilt and the
-inclinometer's as two measurements with those standard deviations would be mixed (a registered
-tilt pulled a tenth of the way to the reading per step at 0.1° against 0.3°, a first-order filter
-whose error stays bounded instead of accumulating).
+absolute scale, is taken to stand for that per-step error, and the prior gets ``(registration_deg
+/ noise_deg)²`` times it in a joint solve (:attr:`TiltPrior.ratios`), and the steady-state Kalman
+share in a sequential fit, whose model carries the tilt error accumulated so far
+(:meth:`TiltPrior.sequential_ratio`): the fit then mixes the registration's tilt and the
+inclinometer's as two measurements with those standard deviations would be mixed, a filter whose
+error stays bounded instead of accumulating. What a step's tilt is worth depends on the scans:
+:data:`RINGS_TILT_DEG` (0.1°) where the pipeline matches against fused scans because a scan's
+rings lie too far apart to hold planes (a VLP-16 outdoors), :data:`PLANES_TILT_DEG` (0.006°)
+where scans find their planes alone (a dense scanner; weighed at 0.1° there, the reading's noise
+pulled the simulated loop from 0.18 to 0.35 cm ATE).
 
 **When it applies.** Only where the roll and pitch of the odometry really are measured: an
 inclinometer, an IMU's gravity estimate. Wheel odometry from a 2D robot (Kurt3D's and 3DTK's
@@ -53,13 +58,18 @@ from slam6d.geometry import Matrix
 FloatArray = NDArray[np.float64]
 
 UP = np.array([0.0, 0.0, 1.0])  # the canonical frame's up (slam6d.scan: right-handed, z up)
-# What registration's tilt is worth per step (see the module docstring): the campus's VLP-16 steps
-# matched from the truth against three fused scans, 0.102° roll / 0.085° pitch RMS.
-REGISTRATION_TILT_DEG = 0.1
+# What registration's tilt is worth per step (see the module docstring), for the two kinds of
+# registration model the pipeline chooses between: scans whose rings lie too far apart to hold
+# planes, matched against three fused scans (the campus's VLP-16 from the truth: 0.102° roll /
+# 0.085° pitch RMS), and scans that find their planes alone (the simulated dense loop, sequential
+# registration: 0.006° per step).
+RINGS_TILT_DEG = 0.1
+PLANES_TILT_DEG = 0.006
 SIMULATION_FILE = "simulation.json"
 
 __all__ = [
-    "REGISTRATION_TILT_DEG",
+    "PLANES_TILT_DEG",
+    "RINGS_TILT_DEG",
     "UP",
     "ScanTilt",
     "TiltPrior",
@@ -87,21 +97,29 @@ def tilt_error_deg(pose: Matrix, up: FloatArray) -> float:
 @dataclass(frozen=True)
 class TiltPrior:
     """Measured up per scan (``ups[k]``, scan frame, unit; rows of scans without a reading are
-    unused, ``measured[k]`` False) with the sensor's noise and the registration's per-step tilt
-    error it is weighed against (module docstring)."""
+    unused, ``measured[k]`` False) with the sensor's noise and, per scan, the registration's
+    per-step tilt error it is weighed against (``registration_deg``; module docstring). The
+    pipeline sets a scan's entry when it chooses the scan's model (:meth:`registered_with`)."""
 
     ups: FloatArray  # (n, 3)
     measured: NDArray[np.bool_]  # (n,)
     noise_deg: float
-    registration_deg: float = REGISTRATION_TILT_DEG
+    registration_deg: FloatArray  # (n,)
 
     def __post_init__(self) -> None:
         if not (self.noise_deg > 0 and math.isfinite(self.noise_deg)):
             raise ValueError(f"the inclinometer's noise must be a positive number of degrees, got {self.noise_deg}")
-        if not (self.registration_deg > 0 and math.isfinite(self.registration_deg)):
-            raise ValueError(f"registration_deg must be a positive number of degrees, got {self.registration_deg}")
-        if self.ups.shape != (len(self.measured), 3):
-            raise ValueError(f"ups must be (n, 3) beside n measured flags, got {self.ups.shape}")
+        if self.ups.shape != (len(self.measured), 3) or self.registration_deg.shape != (len(self.measured),):
+            raise ValueError(
+                f"ups must be (n, 3) and registration_deg (n,) beside n measured flags, got {self.ups.shape}"
+                f" and {self.registration_deg.shape} for {len(self.measured)}"
+            )
+        self._check_registration(self.registration_deg)
+
+    @staticmethod
+    def _check_registration(degrees: FloatArray | float) -> None:
+        if not np.all((np.asarray(degrees) > 0) & np.isfinite(degrees)):
+            raise ValueError(f"the registration's tilt per step must be a positive number of degrees, got {degrees}")
 
     @classmethod
     def from_poses(
@@ -109,44 +127,51 @@ class TiltPrior:
         poses: Sequence[Matrix],
         measured: Sequence[bool],
         noise_deg: float,
-        registration_deg: float = REGISTRATION_TILT_DEG,
+        registration_deg: float = PLANES_TILT_DEG,
     ) -> TiltPrior:
         """The readings carried by odometry poses (their roll and pitch; their heading and position
-        are ignored); ``measured[k]`` False for scans without odometry."""
+        are ignored); ``measured[k]`` False for scans without odometry. Every scan's registration
+        is taken to be worth ``registration_deg`` until :meth:`registered_with` says otherwise."""
         ups = np.array([measured_up(p) for p in poses]).reshape(len(poses), 3)
-        return cls(ups, np.array(measured, dtype=bool), float(noise_deg), float(registration_deg))
+        registration = np.full(len(poses), float(registration_deg))
+        return cls(ups, np.array(measured, dtype=bool), float(noise_deg), registration)
+
+    def registered_with(self, index: int, registration_deg: float) -> None:
+        """Scan ``index`` was registered by a model whose tilt is worth ``registration_deg`` per step."""
+        self._check_registration(registration_deg)
+        self.registration_deg[index] = registration_deg
 
     @property
-    def ratio(self) -> float:
-        """The prior's weight as a share of one step's tilt information in a joint solve (LUM, a
-        pose graph), where the steps relate the scans to each other and every scan has its own
-        reading: (registration / noise)²."""
-        return (self.registration_deg / self.noise_deg) ** 2
+    def ratios(self) -> FloatArray:
+        """Per scan, the prior's weight as a share of one step's tilt information in a joint solve
+        (LUM, a pose graph), where the steps relate the scans to each other and every scan has its
+        own reading: (registration / noise)²."""
+        return np.asarray((self.registration_deg / self.noise_deg) ** 2, dtype=np.float64)
 
-    @property
-    def sequential_ratio(self) -> float:
-        """The prior's weight as a share of a sequential fit's tilt information. There the model
-        is the scans registered before, whose tilt is itself only known to the filter's steady
-        state P (a Kalman filter over the steps: predict P + q, q = registration², update with the
-        reading, r = noise²), so the fit's tilt is worth P + q, not q, and the reading gets
-        (P + q) / r with P + q = (q + sqrt(q² + 4 q r)) / 2: 0.39 for 0.1° against 0.3° where q / r
-        would give 0.11. With q / r a per-step bias b of the registration settled at 9 b off the
-        reading (a first-order filter's a b / (1 - a), a = 0.9): 0.58° on the campus's ramp."""
-        q, r = self.registration_deg**2, self.noise_deg**2
+    def sequential_ratio(self, index: int) -> float:
+        """The prior's weight as a share of scan ``index``'s sequential fit's tilt information.
+        There the model is the scans registered before, whose tilt is itself only known to the
+        filter's steady state P (a Kalman filter over the steps: predict P + q, q = registration²,
+        update with the reading, r = noise²), so the fit's tilt is worth P + q, not q, and the
+        reading gets (P + q) / r with P + q = (q + sqrt(q² + 4 q r)) / 2: 0.39 for 0.1° against
+        0.3° where q / r would give 0.11. With q / r a per-step bias b of the registration settled
+        at 9 b off the reading (a first-order filter's a b / (1 - a), a = 0.9): 0.58° on the
+        campus's ramp."""
+        q, r = float(self.registration_deg[index]) ** 2, self.noise_deg**2
         return (q + math.sqrt(q * q + 4.0 * q * r)) / 2.0 / r
 
     def __len__(self) -> int:
         return len(self.measured)
 
-    def weight(self, step_information: Sequence[float]) -> float:
-        """The prior's weight in a joint solve: :attr:`ratio` x the median tilt information the
-        registration's steps hold there (:func:`tilt_information` of the consecutive pairs; 0 when
+    def weights(self, step_information: Sequence[float]) -> FloatArray:
+        """Per scan, the prior's weight in a joint solve: :attr:`ratios` x the median tilt
+        information the registration's steps hold there (:func:`tilt_information`; all 0 when
         none has any, which leaves the prior out)."""
         positive = [h for h in step_information if h > 0]
-        return self.ratio * float(np.median(positive)) if positive else 0.0
+        return self.ratios * (float(np.median(positive)) if positive else 0.0)
 
     def terms(
-        self, rotations: FloatArray, free: NDArray[np.bool_], weight: float
+        self, rotations: FloatArray, free: NDArray[np.bool_], weights: FloatArray
     ) -> tuple[FloatArray, FloatArray, float]:
         """For a joint solve with right perturbations R <- R Exp(φ): per scan the block to add to
         the rotation part of its normal equations, the gradient to add (the normal equations solve
@@ -156,12 +181,10 @@ class TiltPrior:
             raise ValueError(f"the tilt prior has readings for {len(self)} scans, the solve has {count}")
         blocks, gradient = np.zeros((count, 3, 3)), np.zeros((count, 3))
         chi2 = 0.0
-        if weight <= 0:
-            return blocks, gradient, chi2
-        for k in np.flatnonzero(free & self.measured):
+        for k in np.flatnonzero(free & self.measured & (weights > 0)):
             implied = rotations[k].T @ UP
-            blocks[k], gradient[k] = tilt_normal_equations(implied, self.ups[k], weight)
-            chi2 += weight * float(np.sum((implied - self.ups[k]) ** 2))
+            blocks[k], gradient[k] = tilt_normal_equations(implied, self.ups[k], float(weights[k]))
+            chi2 += float(weights[k]) * float(np.sum((implied - self.ups[k]) ** 2))
         return blocks, gradient, chi2
 
     def for_fit(self, index: int, world_from_model: Matrix) -> ScanTilt | None:
@@ -169,7 +192,7 @@ class TiltPrior:
         when the scan has none."""
         if not self.measured[index]:
             return None
-        return ScanTilt(self.ups[index], np.asarray(world_from_model)[:3, :3].T @ UP, self.sequential_ratio)
+        return ScanTilt(self.ups[index], np.asarray(world_from_model)[:3, :3].T @ UP, self.sequential_ratio(index))
 
 
 def tilt_information(hessian: FloatArray, up: FloatArray) -> float:

@@ -384,7 +384,7 @@ def _add_tilt_prior(
 ) -> None:
     """Add each free scan's measured up to its diagonal block and right-hand side (in place).
 
-    The weight (:meth:`slam6d.attitude.TiltPrior.weight`) is ``tilt.ratio`` x the tilt information
+    The weight (:meth:`slam6d.attitude.TiltPrior.weights`) is the scan's ratio x the tilt information
     of a typical step: the median over the free scans of half the information all of a scan's
     pairs hold on its tilt (this round's Cauchy and budget weights included; half, as a step lies
     between two scans). :mod:`slam6d.attitude` takes a step's information to stand for the
@@ -397,13 +397,13 @@ def _add_tilt_prior(
     """
     free = np.ones(len(current), dtype=bool)
     free[list(held)] = False
-    weight = tilt.weight(
+    weights = tilt.weights(
         [
             tilt_information(diag[k][np.ix_(_ROTATION_FIRST, _ROTATION_FIRST)], measured_up(current[int(k)])) / 2.0
             for k in np.flatnonzero(free)
         ]
     )
-    prior, gradient, _ = tilt.terms(np.array([p[:3, :3] for p in current]), free, weight)
+    prior, gradient, _ = tilt.terms(np.array([p[:3, :3] for p in current]), free, weights)
     diag[:, 3:, 3:] += prior
     rhs[:, 3:] -= gradient
 

@@ -40,7 +40,7 @@ from typing import Any
 
 import numpy as np
 
-from slam6d.attitude import REGISTRATION_TILT_DEG, TiltPrior, heading_only
+from slam6d.attitude import PLANES_TILT_DEG, RINGS_TILT_DEG, TiltPrior, heading_only
 from slam6d.errors import DisconnectedGraphError, RegistrationError, RelaxationError, Slam6dError
 from slam6d.events import (
     Event,
@@ -175,11 +175,15 @@ class PipelineConfig:
     0.9-3.3 cm (docs/robustness.md, "Indoor hand-held walks without odometry").
     ``tilt_noise_deg``: the odometry poses' roll and pitch are an inclinometer's readings with this
     noise (degrees), absolute rather than accumulated; each scan's measured up is then a prior on
-    its roll and pitch in sequential ICP and in the ``lum`` and ``graph`` relaxations, weighed against
-    ``registration_tilt_deg``, the registration's own tilt error per step (:mod:`slam6d.attitude`
-    explains the weighting). None (the default) uses no tilt: wheel odometry's zeros and a gyro's
-    drifting integral are no measurement of it. ``slam6d run`` sets it from the session's
-    declaration (the simulator's ``simulation.json``) or ``--tilt-noise-deg``.
+    its roll and pitch in sequential ICP and in the ``lum`` and ``graph`` relaxations, weighed
+    against what the registration's tilt is worth per step: ``registration_tilt_deg`` where a scan
+    finds its planes alone (the dense simulated loop: 0.006°), ``fused_registration_tilt_deg`` where
+    it is matched against fused scans because its rings lie apart (the campus's VLP-16: 0.1°);
+    :mod:`slam6d.attitude` explains the weighting. Loop closings then keep the measured tilt
+    (:func:`slam6d.attitude.heading_only`). None (the default) uses no tilt: wheel odometry's zeros
+    and a gyro's drifting integral are no measurement of it. ``slam6d run`` sets it from the
+    session's declaration (the simulator's ``simulation.json``) or ``--tilt-noise-deg``, a
+    session's ``[engine] tilt_noise_deg`` likewise.
     """
 
     voxel_size: float = 0.1
@@ -205,7 +209,8 @@ class PipelineConfig:
     odometry_trust_deg: float = 3.0
     hold_constraint: float = 0.025
     tilt_noise_deg: float | None = None
-    registration_tilt_deg: float = REGISTRATION_TILT_DEG
+    registration_tilt_deg: float = PLANES_TILT_DEG
+    fused_registration_tilt_deg: float = RINGS_TILT_DEG
     loop: LoopConfig = field(default_factory=LoopConfig)
     relax: RelaxationConfig = field(default_factory=RelaxationConfig)
 
@@ -245,10 +250,10 @@ class PipelineConfig:
             raise ValueError(
                 f"tilt_noise_deg must be a positive number of degrees (or unset: no inclinometer), got {self.tilt_noise_deg}"
             )
-        if not (self.registration_tilt_deg > 0 and math.isfinite(self.registration_tilt_deg)):
-            raise ValueError(
-                f"registration_tilt_deg must be a positive number of degrees, got {self.registration_tilt_deg}"
-            )
+        for name in ("registration_tilt_deg", "fused_registration_tilt_deg"):
+            value = getattr(self, name)
+            if not (value > 0 and math.isfinite(value)):
+                raise ValueError(f"{name} must be a positive number of degrees, got {value}")
 
 
 # ---------------------------------------------------------------- the pipeline
@@ -280,7 +285,7 @@ class Pipeline:
         if config.tilt_noise_deg is not None and any(self.has_odometry):
             self.tilt = TiltPrior.from_poses(
                 self.odometry, self.has_odometry, config.tilt_noise_deg, config.registration_tilt_deg
-            )
+            )  # each scan's entry is set when registration chooses its model (_model)
         self.history: list[list[tuple[Matrix, int]]] = [[(p.copy(), FrameType.ICP_INACTIVE)] for p in self.poses]
         self.registered = 1  # scan 0 anchors the map
         self.done = False
@@ -536,7 +541,11 @@ class Pipeline:
         """Model for scan ``index``: (index, world_from_model, scans in it)."""
         if self.config.matching == "pairwise":
             return self.registration_model(index - 1), self.poses[index - 1], [index - 1]
-        if self.config.fused_scans > 1 and index >= 2 and self._needs_fusing(index - 1):
+        fusing = self.config.fused_scans > 1 and index >= 2 and self._needs_fusing(index - 1)
+        if self.tilt is not None:  # what the fit's tilt is worth, for weighing the inclinometer against it
+            cfg = self.config
+            self.tilt.registered_with(index, cfg.fused_registration_tilt_deg if fusing else cfg.registration_tilt_deg)
+        if fusing:
             fused = list(range(max(0, index - self.config.fused_scans), index))
             return self._fused_model(fused), self.poses[index - 1], fused
         members = list(range(max(0, index - self.config.metascan_scans), index))

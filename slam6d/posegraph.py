@@ -215,7 +215,7 @@ def optimize_pose_graph(
     normal equations are singular (a pose constrained in fewer than 6 degrees of freedom).
 
     ``tilt`` (:class:`slam6d.attitude.TiltPrior`): measured up per scan, a prior on each free pose's
-    roll and pitch weighing the prior's ratio x the median tilt information of the consecutive edges
+    roll and pitch weighing the scan's ratio x the median tilt information of the consecutive edges
     (j = i + 1, the registration's steps; every edge where there are none), counted in χ².
     """
     count = len(poses)
@@ -232,12 +232,12 @@ def optimize_pose_graph(
     system = BlockSystem(count, fixed_set, packed.i, packed.j)
     free = system.free
 
-    tilt_weight = 0.0 if tilt is None else _tilt_weight(tilt, packed, rot)
+    tilt_weights = np.zeros(count) if tilt is None else _tilt_weights(tilt, packed, rot)
 
     def prior(rotations: NDArray) -> tuple[NDArray, NDArray, float]:
         if tilt is None:
             return np.zeros((count, 3, 3)), np.zeros((count, 3)), 0.0
-        return tilt.terms(rotations, free, tilt_weight)
+        return tilt.terms(rotations, free, tilt_weights)
 
     err, rij, tij, er = _errors(rot, trans, packed)
     chi2 = _chi2(err, packed.info) + prior(rot)[2]
@@ -294,13 +294,13 @@ def optimize_pose_graph(
     )
 
 
-def _tilt_weight(tilt: TiltPrior, e: _Edges, rot: NDArray) -> float:
-    """:meth:`slam6d.attitude.TiltPrior.weight` over the consecutive edges' information on the
+def _tilt_weights(tilt: TiltPrior, e: _Edges, rot: NDArray) -> NDArray:
+    """:meth:`slam6d.attitude.TiltPrior.weights` over the consecutive edges' information on the
     later pose's tilt (information is ordered translation, rotation)."""
     steps = np.flatnonzero(e.j == e.i + 1)
     steps = steps if len(steps) else np.arange(len(e.i))
     order = np.array([3, 4, 5, 0, 1, 2])
-    return tilt.weight([tilt_information(e.info[m][np.ix_(order, order)], measured_up(rot[e.j[m]])) for m in steps])
+    return tilt.weights([tilt_information(e.info[m][np.ix_(order, order)], measured_up(rot[e.j[m]])) for m in steps])
 
 
 _SEED_GAIN = 0.1  # seed the rotations when that cuts their share of χ² at least tenfold

@@ -11,6 +11,8 @@ import numpy as np
 import pytest
 
 from slam6d.attitude import (
+    PLANES_TILT_DEG,
+    RINGS_TILT_DEG,
     UP,
     TiltPrior,
     declared_tilt_noise,
@@ -42,23 +44,29 @@ def _room(rng: np.random.Generator) -> np.ndarray:
 def test_icp_mixes_its_tilt_and_the_reading_by_their_stated_accuracies() -> None:
     """An exact copy of a room matched from the truth stays at the truth; given a reading 0.5° off
     in pitch, the fit moves towards it by the reading's share of the combined information,
-    r / (1 + r) with r = TiltPrior.sequential_ratio (0.28 at 0.1° against 0.3°: 0.141°), and
-    keeps its heading and position (a turn about the scanner, not a shift)."""
+    r / (1 + r) with r = TiltPrior.sequential_ratio (0.39 at 0.1° against 0.3°: 0.141°), and
+    keeps its heading and position (a turn about the scanner, not a shift). A fit worth 0.006° a
+    step (scans that find their planes alone) moves 0.03° at most."""
     points = _room(np.random.default_rng(1))
-    prior = TiltPrior.from_poses([pose_from_xyzrpy(0, 0, 0, 0.0, math.radians(0.5), 0.3)], [True], 0.3)
+    prior = TiltPrior.from_poses(
+        [pose_from_xyzrpy(0, 0, 0, 0.0, math.radians(0.5), 0.3)], [True], 0.3, registration_deg=RINGS_TILT_DEG
+    )
     tilt = prior.for_fit(0, np.eye(4))
     assert tilt is not None
     config = ICPConfig(data_voxel_size=0.0, normal_voxel_size=0.0, max_distance=0.3)
     plain = list(icp_iterations(points, points, np.eye(4), config))[-1].transform
     held = list(icp_iterations(points, points, np.eye(4), config, tilt=tilt))[-1].transform
     assert tilt_error_deg(plain, UP) < 1e-4
-    ratio = prior.sequential_ratio
+    ratio = prior.sequential_ratio(0)
     assert ratio == pytest.approx(0.393, abs=0.001)
     expected = 0.5 * ratio / (1.0 + ratio)
     _, _, _, roll, pitch, yaw = xyzrpy_from_pose(held)
     assert math.degrees(pitch) == pytest.approx(expected, abs=0.01)
     assert abs(math.degrees(roll)) < 0.01 and abs(math.degrees(yaw)) < 0.01
     assert np.linalg.norm(held[:3, 3]) < 0.005
+    prior.registered_with(0, PLANES_TILT_DEG)
+    dense = list(icp_iterations(points, points, np.eye(4), config, tilt=prior.for_fit(0, np.eye(4))))[-1].transform
+    assert tilt_error_deg(dense, UP) < 0.03
 
 
 def _arc_with_pitch_drift(
@@ -90,7 +98,7 @@ def test_tilt_prior_takes_a_steady_pitch_drift_out_of_a_pose_graph_without_loops
         t @ make_pose(rot_x(rng.normal(0.0, math.radians(0.3))) @ rot_y(rng.normal(0.0, math.radians(0.3))), [0, 0, 0])
         for t in truth
     ]
-    prior = TiltPrior.from_poses(readings, [True] * len(truth), 0.3)
+    prior = TiltPrior.from_poses(readings, [True] * len(truth), 0.3, registration_deg=RINGS_TILT_DEG)
     free = optimize_pose_graph(chained, edges, fixed=[0])
     held = optimize_pose_graph(chained, edges, fixed=[0], tilt=prior)
     assert max(abs(p[2, 3] - t[2, 3]) for p, t in zip(free.poses, truth, strict=True)) > 3.5
@@ -157,3 +165,22 @@ def test_a_run_uses_the_tilt_only_where_it_is_declared(tmp_path: Path) -> None:
     assert Pipeline(blind, PipelineConfig(loops=False, relaxation="none", tilt_noise_deg=0.3)).tilt is None
     with pytest.raises(ValueError, match="tilt_noise_deg"):
         PipelineConfig(tilt_noise_deg=0.0)
+
+
+def test_a_session_over_a_simulated_folder_writes_its_inclinometer_into_engine(tmp_path: Path) -> None:
+    """The workbench runs with a session's [engine] settings: a session made over a folder that
+    declares an inclinometer says so there (and the user's own value wins); over any other folder
+    nothing is added."""
+    from slam6d.engine_settings import pipeline_config
+    from slam6d.session import Session
+
+    small = {"scans": 2, "points_per_scan": 500, "loop_length": 16.0, "loop_width": 10.0}
+    simulate_session(tmp_path / "odo", SimulationConfig(**small))  # type: ignore[arg-type]
+    simulate_session(tmp_path / "none", SimulationConfig(odometry=False, **small))  # type: ignore[arg-type]
+    declared = Session.create(tmp_path / "s1", "declared", tmp_path / "odo")
+    assert declared.config.engine["tilt_noise_deg"] == 0.3
+    assert pipeline_config(declared.config.engine).tilt_noise_deg == 0.3
+    chosen = Session.create(tmp_path / "s2", "chosen", tmp_path / "odo", engine={"tilt_noise_deg": 1.0})
+    assert chosen.config.engine["tilt_noise_deg"] == 1.0
+    blind = Session.create(tmp_path / "s3", "blind", tmp_path / "none")
+    assert "tilt_noise_deg" not in blind.config.engine
