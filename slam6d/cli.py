@@ -419,6 +419,7 @@ def run(
         raise typer.BadParameter(
             f"must be a number of degrees >= 0, got {tilt_noise_deg}", param_hint="--tilt-noise-deg"
         )
+    declared_tilt = tilt_noise_deg is None
     if tilt_noise_deg is None:
         from slam6d.attitude import declared_tilt_noise
 
@@ -550,6 +551,11 @@ def run(
         typer.echo(
             f"relaxation ({report.relaxation}): point-to-plane RMS {100 * report.residual_before:.2f} -> "
             f"{100 * report.residual_after:.2f} cm over {report.neighbour_pairs} neighbour pairs"
+        )
+    if pipeline.tilt is not None:
+        typer.echo(
+            f"tilt held to the odometry's inclinometer ({config.tilt_noise_deg:g}° noise"
+            f"{', as the input declares' if declared_tilt else ''}); --tilt-noise-deg 0 turns it off"
         )
     stages = ", ".join(f"{k} {v:.2f}s" for k, v in report.stage_seconds.items())
     typer.echo(f"times: reading {read_seconds:.2f}s, {stages}; total {time.perf_counter() - began:.2f}s")
