@@ -12,8 +12,9 @@ degrees of freedom (rotations about "up", the heading, are not measured by gravi
 
 with the sensor's stated noise ``noise_deg`` per axis. :func:`tilt_normal_equations` gives its
 normal-equation terms for a rotation update on either side, and the sequential ICP
-(:func:`slam6d.icp.icp_iterations`) and the LUM relaxation (:func:`slam6d.lum.lum_relaxation`)
-add them.
+(:func:`slam6d.icp.icp_iterations`), the LUM relaxation (:func:`slam6d.lum.lum_relaxation`) and
+the pose graph (:func:`slam6d.posegraph.optimize_pose_graph`) add them; loop closing keeps the
+measured tilt by correcting only the heading and the position (:func:`heading_only`).
 
 **How much it weighs.** Both minimise point-to-plane residuals in metres, each point pair with unit
 weight: taken at face value the information on a scan's tilt is the sum over thousands of pairs
