@@ -308,8 +308,8 @@ def _joint_step(
     robust_scale: float,
     scheduler: Scheduler | None = None,
     shared: Sequence[Any] = (),
-    patterns: dict[frozenset[int], BlockSystem] | None = None,
     tilt: TiltPrior | None = None,
+    patterns: dict[frozenset[int], BlockSystem] | None = None,
 ) -> _Round:
     """One Gauss-Newton step of all scans at once over the current closest-point pairs (LUM's round).
 
@@ -473,7 +473,7 @@ def lum_relaxation(
         scale = config.robust_scale
         if scale > 0:
             scale = max(scale, config.first_scale * 0.5 ** (rounds - 1) * models.config.max_distance)
-        last = _joint_step(models, current, batches, held, config, scale, scheduler, shared, patterns, tilt)
+        last = _joint_step(models, current, batches, held, config, scale, scheduler, shared, tilt, patterns)
         first = first or last
         moved = []
         largest = 0.0
