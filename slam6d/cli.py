@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import os
 import sys
 from collections.abc import Iterator
@@ -397,6 +398,14 @@ def run(
             " processes here, tcp://HOST:PORT joins a running scheduler."
         ),
     ] = None,
+    tilt_noise_deg: Annotated[
+        float | None,
+        typer.Option(
+            help="The odometry's roll and pitch are an inclinometer's readings with this noise (degrees): a prior"
+            " on every scan's tilt in registration and LUM. Default: what the session declares (a simulated"
+            " session's simulation.json), else none; 0 = ignore a declared one."
+        ),
+    ] = None,
 ) -> None:
     """Register a whole sequence: sequential ICP, loop closing, global relaxation; write the trajectory."""
     import time
@@ -408,6 +417,17 @@ def run(
 
     if order not in SCAN_ORDERS:
         raise typer.BadParameter(f"--order must be one of {', '.join(SCAN_ORDERS)}, got {order!r}")
+
+    if tilt_noise_deg is not None and not (tilt_noise_deg >= 0 and math.isfinite(tilt_noise_deg)):
+        raise typer.BadParameter(
+            f"must be a number of degrees >= 0, got {tilt_noise_deg}", param_hint="--tilt-noise-deg"
+        )
+    declared_tilt = tilt_noise_deg is None
+    if tilt_noise_deg is None:
+        from slam6d.attitude import declared_tilt_noise
+
+        tilt_noise_deg = declared_tilt_noise(source) if source.exists() else None
+    tilt = tilt_noise_deg or None  # 0: the user says the readings are none
 
     def make_config() -> Any:
         from slam6d.engine_settings import pipeline_config
@@ -424,6 +444,7 @@ def run(
                 "loops": loops,
                 "loop_closing": loop_closing,
                 "relaxation": relaxation,
+                "tilt_noise_deg": tilt,
             }
         )
 
@@ -533,6 +554,11 @@ def run(
         typer.echo(
             f"relaxation ({report.relaxation}): point-to-plane RMS {100 * report.residual_before:.2f} -> "
             f"{100 * report.residual_after:.2f} cm over {report.neighbour_pairs} neighbour pairs"
+        )
+    if pipeline.tilt is not None:
+        typer.echo(
+            f"tilt held to the odometry's inclinometer ({config.tilt_noise_deg:g}° noise"
+            f"{', as the input declares' if declared_tilt else ''}); --tilt-noise-deg 0 turns it off"
         )
     stages = ", ".join(f"{k} {v:.2f}s" for k, v in report.stage_seconds.items())
     typer.echo(f"times: reading {read_seconds:.2f}s, {stages}; total {time.perf_counter() - began:.2f}s")
