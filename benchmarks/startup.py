@@ -3,19 +3,26 @@
 Every command is a fresh Python process, and on the short sessions a user runs from the shell the
 start-up is a large part of the command: a 10-scan session's small_gicp chain takes 0.1-0.9 s of CPU
 (``benchmarks/robustness.py``). Each row here is a fresh process doing every phase above it and its
-own; the table gives each phase's share (median CPU, user + system, over ``--repeats`` processes,
-interleaved) and the whole ``slam6d run`` of a simulated 10-scan session without odometry last.
+own; the table gives each phase's share (median CPU, user + system, and median wall time over
+``--repeats`` processes, interleaved) and the whole ``slam6d run`` of a simulated 10-scan session
+without odometry last. Almost all of it is Python holding the GIL, so wall time is CPU time plus
+waiting for a core; CPU is the figure that survives a loaded machine.
 
 Phases: the interpreter; importing the command line (typer); parsing ``run``'s options as the
-command does (typer validates each through pydantic); the formats registry with numpy; numba's
-import; the engine's modules; numba's first call (it loads its typing and lowering registries, and
-scipy.linalg for BLAS, once per process; two kernels then load from the cache).
+command does (typer 0.29 imports pydantic and builds a pydantic ``TypeAdapter`` for every option
+that is not a flag); the formats registry with numpy; numba's import; the engine's modules; numba's
+first call (it loads its typing and lowering registries once per process, with scipy's BLAS
+bindings loaded alone first, as ``slam6d run`` does: ``slam6d.numba_blas``; two kernels then load
+from the cache).
 
 The engine's bytecode is written first (``make bytecode``), as an install writes it; numba's
 kernels must be compiled already (``make kernels``, or any earlier run), else the first row that
 calls one pays the compilation.
 
-    .venv/bin/python benchmarks/startup.py [--repeats 7]
+    .venv/bin/python benchmarks/startup.py [--repeats 7] [--against ../before]
+
+``--against`` measures another checkout (``git worktree add ../before COMMIT``) in alternation with
+this one, each process of one followed by the same process of the other, so both see the same load.
 """
 
 from __future__ import annotations
@@ -28,12 +35,27 @@ import statistics
 import subprocess
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks.trajectory import load  # noqa: E402
+
+FIRST_CALL = """
+import numpy as np
+try:
+    from slam6d.numba_blas import load_blas_bindings
+except ImportError:  # a checkout from before it (--against)
+    pass
+else:
+    load_blas_bindings()
+from slam6d.octree import reduce_points
+reduce_points(np.zeros((10, 3)), 0.1)
+"""
+"""numba's first call as ``slam6d run`` makes it (``benchmarks/robustness.py`` counts it in the
+start-up it takes off the run's CPU time)."""
 
 
 def phases(session: Path, out: Path) -> list[tuple[str, str]]:
@@ -43,16 +65,13 @@ def phases(session: Path, out: Path) -> list[tuple[str, str]]:
         ("interpreter", "pass"),
         ("command line (typer)", "import slam6d.cli as cli"),
         (
-            "run's options (typer validates them through pydantic)",
+            "run's options (typer: pydantic, a TypeAdapter each)",
             f"import typer; typer.main.get_command(cli.app).commands['run'].make_context('run', {args!r})",
         ),
         ("formats registry (numpy)", "import slam6d.io.registry"),
         ("numba import", "import numba"),
         ("engine modules", "import slam6d.pipeline, slam6d.engine_settings, slam6d.posegraph, slam6d.scheduler"),
-        (
-            "numba's first call (registries, scipy.linalg)",
-            "import numpy as np; from slam6d.octree import reduce_points; reduce_points(np.zeros((10, 3)), 0.1)",
-        ),
+        ("numba's first call (its registries)", FIRST_CALL),
     ]
 
 
@@ -61,45 +80,62 @@ def children_cpu() -> float:
     return usage.ru_utime + usage.ru_stime
 
 
-def cpu_of(command: list[str]) -> float:
-    """CPU seconds (user + system) of one process running ``command``."""
-    before = children_cpu()
-    subprocess.run(
-        command,
-        check=True,
-        capture_output=True,
-        cwd=ROOT,
-        env=os.environ | {"PYTHONPATH": str(ROOT)},
-    )
-    return children_cpu() - before
+def cost_of(command: list[str], tree: Path) -> tuple[float, float]:
+    """CPU seconds (user + system) and wall seconds of one process running ``command`` on the engine
+    in ``tree``."""
+    before, began = children_cpu(), time.perf_counter()
+    subprocess.run(command, check=True, capture_output=True, cwd=tree, env=os.environ | {"PYTHONPATH": str(tree)})
+    return children_cpu() - before, time.perf_counter() - began
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--repeats", type=int, default=7, help="processes per phase (the median is shown)")
+    parser.add_argument(
+        "--against",
+        type=Path,
+        help="another checkout (git worktree add ../before COMMIT): measured in alternation with this one,"
+        " process by process, for a before/after table at the same load",
+    )
     args = parser.parse_args()
-    compileall.compile_dir(ROOT / "slam6d", quiet=1)
+    trees = [ROOT] if args.against is None else [ROOT, args.against.resolve()]
+    for tree in trees:
+        compileall.compile_dir(tree / "slam6d", quiet=1)
     with tempfile.TemporaryDirectory() as tmp:
         session, out = Path(tmp) / "session", Path(tmp) / "out"
         simulate = ["simulate", str(session), "--world", "outdoor", "--sensor", "vlp16", "--scans", "10", "--seed", "1"]
-        cpu_of([sys.executable, "-m", "slam6d.cli", *simulate, "--no-odometry"])
+        cost_of([sys.executable, "-m", "slam6d.cli", *simulate, "--no-odometry"], ROOT)
         run = [sys.executable, "-m", "slam6d.cli", "run", str(session), "--format", "uos", "--out", str(out)]
-        cpu_of(run)  # compiles any kernel not cached yet
+        for tree in trees:
+            cost_of(run, tree)  # compiles any kernel not cached yet
         steps = phases(session, out)
-        commands = [[sys.executable, "-c", "; ".join(code for _, code in steps[: k + 1])] for k in range(len(steps))]
+        commands = [[sys.executable, "-c", "\n".join(code for _, code in steps[: k + 1])] for k in range(len(steps))]
         commands.append(run)
-        costs: list[list[float]] = [[] for _ in commands]
+        # [tree][command] -> CPU and wall seconds of each repeat
+        cpu: list[list[list[float]]] = [[[] for _ in commands] for _ in trees]
+        wall: list[list[list[float]]] = [[[] for _ in commands] for _ in trees]
         for _ in range(args.repeats):
             for k, command in enumerate(commands):
-                costs[k].append(cpu_of(command))
-    medians = [statistics.median(c) for c in costs]
-    print(f"CPU seconds of a fresh process, median of {args.repeats} ({load()})")
-    previous = 0.0
-    for (name, _), cumulative in zip(steps, medians, strict=False):
-        print(f"  {name:55s} {cumulative - previous:6.3f}   (cumulative {cumulative:.3f})")
-        previous = cumulative
-    print(f"  {'before the first scan':55s} {medians[len(steps) - 1]:6.3f}")
-    print(f"  {'slam6d run, 10-scan outdoor VLP-16 session, no odometry':55s} {medians[-1]:6.3f}")
+                for t, tree in enumerate(trees):
+                    seconds = cost_of(command, tree)
+                    cpu[t][k].append(seconds[0])
+                    wall[t][k].append(seconds[1])
+    print(f"Seconds of a fresh process, median of {args.repeats} ({load()})")
+    for t, tree in enumerate(trees):
+        cpu_medians = [statistics.median(c) for c in cpu[t]]
+        wall_medians = [statistics.median(w) for w in wall[t]]
+        print(f"{tree}:" if len(trees) > 1 else "")
+        print(f"  {'phase':55s} {'CPU':>6s} {'wall':>6s}   cumulative CPU, wall")
+        previous = (0.0, 0.0)
+        for (name, _), cumulative in zip(steps, zip(cpu_medians, wall_medians, strict=True), strict=False):
+            print(
+                f"  {name:55s} {cumulative[0] - previous[0]:6.3f} {cumulative[1] - previous[1]:6.3f}"
+                f"   ({cumulative[0]:.3f}, {cumulative[1]:.3f})"
+            )
+            previous = cumulative
+        last_rows = (("before the first scan", len(steps) - 1), ("slam6d run, 10-scan outdoor VLP-16, no odometry", -1))
+        for name, k in last_rows:
+            print(f"  {name:55s} {cpu_medians[k]:6.3f} {wall_medians[k]:6.3f}")
 
 
 if __name__ == "__main__":

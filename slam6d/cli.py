@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import os
 import sys
 from collections.abc import Iterator
@@ -112,6 +113,7 @@ def match(
     """Register DATA onto MODEL; print the 4x4 transform (row-major, the files' own units) mapping DATA into MODEL."""
     from slam6d.icp import ICPConfig
     from slam6d.io.registry import ReadOptions, read_scan, resolve_format
+    from slam6d.numba_blas import load_blas_bindings
     from slam6d.pair import GUESS_CHOICES, register_pair
     from slam6d.trace import write_trace
 
@@ -123,6 +125,7 @@ def match(
         raise typer.BadParameter(str(exc)) from None
     if guess not in GUESS_CHOICES:
         raise typer.BadParameter(f"--guess must be one of {', '.join(GUESS_CHOICES)}, got {guess!r}")
+    load_blas_bindings()  # before numba's first call: 0.15 s of scipy.linalg it never uses
     conventions = [resolve_format(path, fmt).convention for path in (model, data)]
     options = ReadOptions(min_range=min_range, max_range=max_range)
     model_scan, data_scan = (read_scan(path, fmt, options) for path in (model, data))
@@ -395,6 +398,14 @@ def run(
             " processes here, tcp://HOST:PORT joins a running scheduler."
         ),
     ] = None,
+    tilt_noise_deg: Annotated[
+        float | None,
+        typer.Option(
+            help="The odometry's roll and pitch are an inclinometer's readings with this noise (degrees): a prior"
+            " on every scan's tilt in registration and LUM. Default: what the session declares (a simulated"
+            " session's simulation.json), else none; 0 = ignore a declared one."
+        ),
+    ] = None,
 ) -> None:
     """Register a whole sequence: sequential ICP, loop closing, global relaxation; write the trajectory."""
     import time
@@ -402,9 +413,21 @@ def run(
 
     from slam6d.io.order import SCAN_ORDERS
     from slam6d.io.registry import ReadOptions, read_sequence, resolve_format
+    from slam6d.numba_blas import load_blas_bindings
 
     if order not in SCAN_ORDERS:
         raise typer.BadParameter(f"--order must be one of {', '.join(SCAN_ORDERS)}, got {order!r}")
+
+    if tilt_noise_deg is not None and not (tilt_noise_deg >= 0 and math.isfinite(tilt_noise_deg)):
+        raise typer.BadParameter(
+            f"must be a number of degrees >= 0, got {tilt_noise_deg}", param_hint="--tilt-noise-deg"
+        )
+    declared_tilt = tilt_noise_deg is None
+    if tilt_noise_deg is None:
+        from slam6d.attitude import declared_tilt_noise
+
+        tilt_noise_deg = declared_tilt_noise(source) if source.exists() else None
+    tilt = tilt_noise_deg or None  # 0: the user says the readings are none
 
     def make_config() -> Any:
         from slam6d.engine_settings import pipeline_config
@@ -421,6 +444,7 @@ def run(
                 "loops": loops,
                 "loop_closing": loop_closing,
                 "relaxation": relaxation,
+                "tilt_noise_deg": tilt,
             }
         )
 
@@ -439,13 +463,13 @@ def run(
             budget = parse_bytes(memory_budget)
         except ValueError as exc:
             raise typer.BadParameter(str(exc), param_hint="--memory-budget") from None
+    load_blas_bindings()  # before numba's first call: 0.15 s of scipy.linalg it never uses
     began = time.perf_counter()
     store = None
     if source.exists():
         resolve_format(source, fmt)  # loads the format modules here, so the thread below never waits on one
-    # The engine (scipy, numba's compiler registries: ~0.4 s of imports) loads and checks the options on
-    # a thread while the scans are read, which is mostly compiled parsing without the GIL. Bad options
-    # stop the reading at the next scan.
+    # The engine's modules load and the options are checked on a thread while the scans are read, which is
+    # mostly compiled parsing without the GIL. Bad options stop the reading at the next scan.
     with ThreadPoolExecutor(1) as pool:
         configured = pool.submit(make_config)
 
@@ -531,6 +555,11 @@ def run(
             f"relaxation ({report.relaxation}): point-to-plane RMS {100 * report.residual_before:.2f} -> "
             f"{100 * report.residual_after:.2f} cm over {report.neighbour_pairs} neighbour pairs"
         )
+    if pipeline.tilt is not None:
+        typer.echo(
+            f"tilt held to the odometry's inclinometer ({config.tilt_noise_deg:g}° noise"
+            f"{', as the input declares' if declared_tilt else ''}); --tilt-noise-deg 0 turns it off"
+        )
     stages = ", ".join(f"{k} {v:.2f}s" for k, v in report.stage_seconds.items())
     typer.echo(f"times: reading {read_seconds:.2f}s, {stages}; total {time.perf_counter() - began:.2f}s")
     typer.echo(f"peak memory {report.peak_memory_bytes / 1e9:.2f} GB")
@@ -558,11 +587,13 @@ def relax(
     """Relax a session's current revision with its [engine] settings: the workbench's Relax, from the shell."""
     from slam6d.engine_settings import pipeline_config
     from slam6d.io.poses import write_kitti_poses
+    from slam6d.numba_blas import load_blas_bindings
     from slam6d.relaxation_methods import reduced_models, relax_poses
     from slam6d.residuals import displacements
     from slam6d.session import Session
     from slam6d.session_graph import graph_edges, sequential_links
 
+    load_blas_bindings()  # before numba's first call: 0.15 s of scipy.linalg it never uses
     session = Session.open(session_dir)
     config = pipeline_config(session.config.engine)
     with progress_bar("reading scans") as update:

@@ -19,6 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from slam6d.attitude import TiltPrior
 from slam6d.errors import RegistrationError, RelaxationError
 from slam6d.geometry import Matrix, invert
 from slam6d.lum import match_edge, pair_information
@@ -60,8 +61,11 @@ def graph_relaxation(
     progress: Progress | None = None,
     cancel: Callable[[], bool] | None = None,
     edge_progress: Callable[[int, int], None] | None = None,
+    tilt: TiltPrior | None = None,
 ) -> RelaxationResult:
     """Relax ``poses`` over ``edges`` (module docstring); ``fixed`` scans stay where they are.
+    ``tilt``: the scans' measured up (an inclinometer), a prior on each pose's roll and pitch in
+    every solve (:func:`slam6d.posegraph.optimize_pose_graph`).
 
     ``progress(round, chi², moved)`` after each round, ``edge_progress(done, total)`` after each
     edge's ICP; :class:`~slam6d.errors.Cancelled` when ``cancel()`` turns true. Refuses with
@@ -90,7 +94,7 @@ def graph_relaxation(
                 raise RelaxationError(f"graph relaxation: scans {edge.i} and {edge.j} no longer match: {exc}") from exc
             if edge_progress is not None:
                 edge_progress((rounds - 1) * len(edges) + n + 1, total)
-        result = optimize_pose_graph(current, measured, fixed=fixed, max_iterations=20)
+        result = optimize_pose_graph(current, measured, fixed=fixed, max_iterations=20, tilt=tilt)
         if not result.converged and not np.isfinite(result.residual_after):
             raise RelaxationError("the pose-graph solver did not converge")
         chi2.append(result.residual_after)

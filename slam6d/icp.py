@@ -45,6 +45,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from slam6d import nn
+from slam6d.attitude import ScanTilt, tilt_information, tilt_normal_equations
 from slam6d.errors import RegistrationError
 from slam6d.geometry import make_pose, rotation_angle, so3_exp, transform_points
 from slam6d.model import NORMAL_NEIGHBOURS, NORMAL_VOXEL_SIZE, ModelIndex
@@ -236,13 +237,17 @@ def point_to_plane_step(
     normals: FloatArray,
     held: FloatArray | None = None,
     scanner: FloatArray | None = None,
+    tilt: tuple[FloatArray, FloatArray, float] | None = None,
 ) -> FloatArray:
     """Small rigid motion minimising sum ((R d + t - m)·n)², linearised (R ≈ I + [ω]×) and solved in one go.
 
     Solved about the centroid of the data pairs, which keeps the 6x6 system well conditioned when the
     scan sits far from the origin (a metascan in world coordinates). ``held`` (unit columns): translations
     the motion must not have; it then turns about ``scanner`` (the data scan's origin, model frame), so
-    that the scanner's position along them stays exactly where it is.
+    that the scanner's position along them stays exactly where it is. ``tilt`` = (the inclinometer's
+    up as the current transform carries it into the model frame, the world's up in the model frame,
+    ratio) adds the measured tilt as a prior weighing ``ratio`` x the pairs' own tilt information
+    (:mod:`slam6d.attitude`).
     """
     centre = data.mean(axis=0) if held is None or scanner is None else np.asarray(scanner, dtype=np.float64)
     p = data - centre
@@ -253,6 +258,11 @@ def point_to_plane_step(
     jac[:, 3:] = normals
     a = jac.T @ jac
     b = -(jac.T @ residual)
+    if tilt is not None:
+        reading, up, ratio = tilt
+        prior, pull = tilt_normal_equations(reading, up, ratio * tilt_information(a, reading))
+        a[:3, :3] += prior
+        b[:3] += pull
     if held is not None:  # solve in what the held translations leave free: the rest of a full QR
         fixed = np.zeros((6, held.shape[1]))
         fixed[3:] = held
@@ -337,8 +347,12 @@ def icp_iterations(
     initial: FloatArray = np.eye(4),
     config: ICPConfig = ICPConfig(),
     anchor: FloatArray | None = None,
+    tilt: ScanTilt | None = None,
 ) -> Iterator[ICPIteration]:
     """Run ICP one step at a time (see the module docstring for the convergence rule).
+
+    ``tilt``: the data scan's measured up (an inclinometer; :class:`slam6d.attitude.ScanTilt`), a
+    prior on its roll and pitch in every point-to-plane step (point-to-point ignores it).
 
     ``anchor``: where (model frame) the data scan's origin was before it moved to the start; a
     translation that ``config.hold_below`` holds keeps the anchor's position across the way from it to
@@ -346,7 +360,7 @@ def icp_iterations(
     finds fewer than ``config.min_pairs`` pairs.
     """
     data = _prepare_data(data, config)
-    return _iterate(_as_model(model, config), data, _as_transform(initial), config, anchor)
+    return _iterate(_as_model(model, config), data, _as_transform(initial), config, anchor, tilt)
 
 
 def _prepare_data(data: FloatArray, config: ICPConfig) -> FloatArray:
@@ -392,6 +406,7 @@ def _iterate(
     transform: FloatArray,
     config: ICPConfig,
     anchor: FloatArray | None = None,
+    tilt: ScanTilt | None = None,
 ) -> Iterator[ICPIteration]:
     point_to_plane = config.method == "point_to_plane"
     start = transform[:3, 3].copy()
@@ -418,7 +433,8 @@ def _iterate(
             )
         rms = float(np.sqrt(np.mean(dist * dist)))
         if normals is not None:
-            step = point_to_plane_step(moved[data_idx], paired_model, normals, held, transform[:3, 3])
+            carried = None if tilt is None else (transform[:3, :3] @ tilt.reading, tilt.up, tilt.ratio)
+            step = point_to_plane_step(moved[data_idx], paired_model, normals, held, transform[:3, 3], carried)
         else:
             step = point_to_point_step(moved[data_idx], paired_model)
         transform = step @ transform

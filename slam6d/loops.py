@@ -50,6 +50,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import NDArray
 
+from slam6d.attitude import TiltPrior
 from slam6d.errors import Cancelled, RegistrationError
 from slam6d.geometry import (
     Matrix,
@@ -542,6 +543,7 @@ def hold_closed_loops(
     loops: Sequence[LoopHypothesis],
     poses: Sequence[Matrix],
     lever: float,
+    tilt: TiltPrior | None = None,
 ) -> list[Matrix]:
     """Poses that keep every closed loop and the registered steps between them at once.
 
@@ -562,6 +564,10 @@ def hold_closed_loops(
     about 1/(n+1) of its own mismatch (the campus's loops span 50-700 steps: they are kept to 0.4 cm
     at the median). Hence only for registered steps: the workbench's *Close loops* diffuses alone,
     since a session's poses there may be odometry or hand moves, which a verified loop outweighs.
+
+    ``tilt``: the inclinometer's readings (:class:`slam6d.attitude.TiltPrior`), held in this solve as
+    in registration and relaxation; without them the loops' own relative tilts (0.1-0.2° off on the
+    campus's ring scans) would tilt the stretches between them again.
     """
     if lever <= 0:
         raise ValueError(f"lever must be positive, got {lever}")
@@ -575,7 +581,7 @@ def hold_closed_loops(
         if loop.transform is None:
             raise ValueError(f"loop ({loop.i}, {loop.j}) has no transform")
         edges.append(PoseEdge(loop.i, loop.j, np.asarray(loop.transform, dtype=np.float64), information))
-    return [np.asarray(p) for p in optimize_pose_graph(poses, edges, fixed=(0,)).poses]
+    return [np.asarray(p) for p in optimize_pose_graph(poses, edges, fixed=(0,), tilt=tilt).poses]
 
 
 def detect_loops(

@@ -42,6 +42,7 @@ from typing import Any
 
 import numpy as np
 
+from slam6d.attitude import PLANES_TILT_DEG, RINGS_TILT_DEG, TiltPrior, heading_only
 from slam6d.errors import DisconnectedGraphError, RegistrationError, RelaxationError, Slam6dError
 from slam6d.events import (
     Event,
@@ -176,6 +177,17 @@ class PipelineConfig:
     walks, every car session) have 5-25 % and are never held. With 1.5 % the matrix's indoor VLP-16
     seed 2 walk still ended 15 cm off; with 2.5 % all four indoor walks without odometry end at
     0.9-3.3 cm (docs/robustness.md, "Indoor hand-held walks without odometry").
+    ``tilt_noise_deg``: the odometry poses' roll and pitch are an inclinometer's readings with this
+    noise (degrees), absolute rather than accumulated; each scan's measured up is then a prior on
+    its roll and pitch in sequential ICP and in the ``lum`` and ``graph`` relaxations, weighed
+    against what the registration's tilt is worth per step: ``registration_tilt_deg`` where a scan
+    finds its planes alone (the dense simulated loop: 0.006°), ``fused_registration_tilt_deg`` where
+    it is matched against fused scans because its rings lie apart (the campus's VLP-16: 0.1°);
+    :mod:`slam6d.attitude` explains the weighting. Loop closings then keep the measured tilt
+    (:func:`slam6d.attitude.heading_only`). None (the default) uses no tilt: wheel odometry's zeros
+    and a gyro's drifting integral are no measurement of it. ``slam6d run`` sets it from the
+    session's declaration (the simulator's ``simulation.json``) or ``--tilt-noise-deg``, a
+    session's ``[engine] tilt_noise_deg`` likewise.
     """
 
     voxel_size: float = 0.1
@@ -200,6 +212,9 @@ class PipelineConfig:
     odometry_trust_m: float = 0.3
     odometry_trust_deg: float = 3.0
     hold_constraint: float = 0.025
+    tilt_noise_deg: float | None = None
+    registration_tilt_deg: float = PLANES_TILT_DEG
+    fused_registration_tilt_deg: float = RINGS_TILT_DEG
     loop: LoopConfig = field(default_factory=LoopConfig)
     relax: RelaxationConfig = field(default_factory=RelaxationConfig)
 
@@ -235,6 +250,14 @@ class PipelineConfig:
             raise ValueError(f"fused_scans must be >= 0 (0 or 1 = never fuse), got {self.fused_scans}")
         if self.max_range is not None and not self.max_range > 0:
             raise ValueError(f"max_range must be positive, got {self.max_range}")
+        if self.tilt_noise_deg is not None and not (self.tilt_noise_deg > 0 and math.isfinite(self.tilt_noise_deg)):
+            raise ValueError(
+                f"tilt_noise_deg must be a positive number of degrees (or unset: no inclinometer), got {self.tilt_noise_deg}"
+            )
+        for name in ("registration_tilt_deg", "fused_registration_tilt_deg"):
+            value = getattr(self, name)
+            if not (value > 0 and math.isfinite(value)):
+                raise ValueError(f"{name} must be a positive number of degrees, got {value}")
 
 
 # ---------------------------------------------------------------- the pipeline
@@ -261,6 +284,12 @@ class Pipeline:
         self.odometry: list[Matrix] = [scan.pose.copy() for scan in sequence]
         self.has_odometry = [bool(scan.has_pose) for scan in sequence]
         self.poses: list[Matrix] = [p.copy() for p in self.odometry]
+        # the odometry's roll and pitch as an inclinometer's readings, where the session has one
+        self.tilt: TiltPrior | None = None
+        if config.tilt_noise_deg is not None and any(self.has_odometry):
+            self.tilt = TiltPrior.from_poses(
+                self.odometry, self.has_odometry, config.tilt_noise_deg, config.registration_tilt_deg
+            )  # each scan's entry is set when registration chooses its model (_model)
         self.history: list[list[tuple[Matrix, int]]] = [[(p.copy(), FrameType.ICP_INACTIVE)] for p in self.poses]
         self.registered = 1  # scan 0 anchors the map
         self.done = False
@@ -518,7 +547,11 @@ class Pipeline:
         """Model for scan ``index``: (index, world_from_model, scans in it)."""
         if self.config.matching == "pairwise":
             return self.registration_model(index - 1), self.poses[index - 1], [index - 1]
-        if self.config.fused_scans > 1 and index >= 2 and self._needs_fusing(index - 1):
+        fusing = self.config.fused_scans > 1 and index >= 2 and self._needs_fusing(index - 1)
+        if self.tilt is not None:  # what the fit's tilt is worth, for weighing the inclinometer against it
+            cfg = self.config
+            self.tilt.registered_with(index, cfg.fused_registration_tilt_deg if fusing else cfg.registration_tilt_deg)
+        if fusing:
             fused = self._fused_members(index - 1)
             return self._fused_model(fused), self.poses[index - 1], fused
         members = list(range(max(0, index - self.config.metascan_scans), index))
@@ -666,7 +699,8 @@ class Pipeline:
         # previous scan's position: see PipelineConfig.hold_constraint
         anchor = None if self._odometry_step(index) else (model_from_world @ self.poses[index - 1])[:3, 3]
         try:
-            for iteration in icp_iterations(model, data, model_from_world @ start_world, config, anchor):
+            tilt = None if self.tilt is None else self.tilt.for_fit(index, world_from_model)
+            for iteration in icp_iterations(model, data, model_from_world @ start_world, config, anchor, tilt):
                 iterations.append(iteration)
                 pose = world_from_model @ iteration.transform
                 self._set_pose(index, pose, FrameType.ICP)
@@ -901,11 +935,15 @@ class Pipeline:
                 loop = accepted[0]
                 before = [p.copy() for p in self.poses]
                 closed.append(loop)
+                correction = loop_correction(self.poses, loop)
+                if self.tilt is not None:  # the measured tilt stays (attitude.heading_only)
+                    correction = heading_only(correction, self.poses[loop.j][:3, 3])
                 corrected = hold_closed_loops(
                     registered,
                     closed,
-                    diffuse_loop_correction(self.poses, loop.i, loop.j, loop_correction(self.poses, loop)),
+                    diffuse_loop_correction(self.poses, loop.i, loop.j, correction),
                     self._lever(),
+                    self.tilt,
                 )
                 displacement = []
                 for k, pose in enumerate(corrected):
@@ -944,6 +982,7 @@ class Pipeline:
                 members=members,
                 links=self.links,  # a sequential registration is an edge, however sparse the overlap
                 scheduler=self.scheduler,
+                tilt=self.tilt if self.config.relaxation != "simultaneous" else None,
             )
 
         disconnected: DisconnectedGraphError | None = None

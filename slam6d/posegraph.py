@@ -26,6 +26,7 @@ import numpy as np
 from cvxopt import cholmod
 from numpy.typing import NDArray
 
+from slam6d.attitude import TiltPrior, measured_up, tilt_information
 from slam6d.block_system import BlockSystem
 from slam6d.errors import DisconnectedGraphError, RelaxationError
 from slam6d.geometry import Matrix, invert, skew, so3_exp, so3_log
@@ -199,6 +200,7 @@ def optimize_pose_graph(
     max_iterations: int = 30,
     tolerance: float = 1e-6,
     progress: Callable[[int, float], None] | None = None,
+    tilt: TiltPrior | None = None,
 ) -> PoseGraphResult:
     """Least-squares poses for a graph of relative measurements; ``fixed`` poses do not move.
 
@@ -211,6 +213,10 @@ def optimize_pose_graph(
     factorisation that would merely confirm convergence is saved. ``residual_before`` is the χ²
     of the given poses. Raises :class:`RelaxationError` on a disconnected graph, on non-finite input, or when the
     normal equations are singular (a pose constrained in fewer than 6 degrees of freedom).
+
+    ``tilt`` (:class:`slam6d.attitude.TiltPrior`): measured up per scan, a prior on each free pose's
+    roll and pitch weighing the scan's ratio x the median tilt information of the consecutive edges
+    (j = i + 1, the registration's steps; every edge where there are none), counted in χ².
     """
     count = len(poses)
     fixed_set = {int(f) for f in fixed}
@@ -226,8 +232,15 @@ def optimize_pose_graph(
     system = BlockSystem(count, fixed_set, packed.i, packed.j)
     free = system.free
 
+    tilt_weights = np.zeros(count) if tilt is None else _tilt_weights(tilt, packed, rot)
+
+    def prior(rotations: NDArray) -> tuple[NDArray, NDArray, float]:
+        if tilt is None:
+            return np.zeros((count, 3, 3)), np.zeros((count, 3)), 0.0
+        return tilt.terms(rotations, free, tilt_weights)
+
     err, rij, tij, er = _errors(rot, trans, packed)
-    chi2 = _chi2(err, packed.info)
+    chi2 = _chi2(err, packed.info) + prior(rot)[2]
     before = chi2
     if max_iterations > 0 and free.any():
         seeded = _chordal_rotations(rot, packed, free)
@@ -236,13 +249,16 @@ def optimize_pose_graph(
         if seeded is not None and _rotation_chi2(seeded, packed) < _SEED_GAIN * _rotation_chi2(rot, packed):
             rot = seeded
             err, rij, tij, er = _errors(rot, trans, packed)
-            chi2 = _chi2(err, packed.info)
+            chi2 = _chi2(err, packed.info) + prior(rot)[2]
     damping = 0.0
     converged = not free.any()
     iteration = 0
     while not converged and iteration < max_iterations:
         iteration += 1
         diag, off, gradient = _normal_blocks(packed, rij, tij, er, err, count)
+        tilt_blocks, tilt_gradient, _ = prior(rot)
+        diag[:, 3:, 3:] += tilt_blocks
+        gradient[:, 3:] += tilt_gradient
         while True:
             damped = diag
             if damping > 0.0:
@@ -251,7 +267,7 @@ def optimize_pose_graph(
             step = system.solve(damped, off, -gradient)
             new_rot, new_trans = _moved(rot, trans, step, free)
             new_err, new_rij, new_tij, new_er = _errors(new_rot, new_trans, packed)
-            new_chi2 = _chi2(new_err, packed.info)
+            new_chi2 = _chi2(new_err, packed.info) + prior(new_rot)[2]
             if new_chi2 <= chi2 * (1.0 + 1e-12) or damping > 1e8:
                 break
             damping = 1e-4 if damping == 0.0 else damping * 10.0
@@ -276,6 +292,15 @@ def optimize_pose_graph(
         edge_translation_error=np.linalg.norm(err[:, :3], axis=1).tolist(),
         edge_rotation_error=np.linalg.norm(err[:, 3:], axis=1).tolist(),
     )
+
+
+def _tilt_weights(tilt: TiltPrior, e: _Edges, rot: NDArray) -> NDArray:
+    """:meth:`slam6d.attitude.TiltPrior.weights` over the consecutive edges' information on the
+    later pose's tilt (information is ordered translation, rotation)."""
+    steps = np.flatnonzero(e.j == e.i + 1)
+    steps = steps if len(steps) else np.arange(len(e.i))
+    order = np.array([3, 4, 5, 0, 1, 2])
+    return tilt.weights([tilt_information(e.info[m][np.ix_(order, order)], measured_up(rot[e.j[m]])) for m in steps])
 
 
 _SEED_GAIN = 0.1  # seed the rotations when that cuts their share of χ² at least tenfold

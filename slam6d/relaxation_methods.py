@@ -24,6 +24,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from slam6d.attitude import TiltPrior
 from slam6d.errors import Slam6dError
 from slam6d.geometry import Matrix
 from slam6d.graph_relaxation import GraphEdge, graph_relaxation
@@ -70,6 +71,7 @@ def relax_poses(
     members: Iterable[int] | None = None,
     links: Iterable[tuple[int, int]] = (),
     scheduler: Scheduler | None = None,
+    tilt: TiltPrior | None = None,
 ) -> RelaxationResult:
     """Relax ``poses`` with the method named (table above); ``edges`` is the graph ``graph`` relaxes over.
 
@@ -79,7 +81,9 @@ def relax_poses(
     edges already). ``progress(round, residual, moved)`` after each round; ``edge_progress(done,
     total)`` after each edge's ICP (``graph`` only); :class:`~slam6d.errors.Cancelled` when
     ``cancel()`` turns true. A ``scheduler`` (:mod:`slam6d.scheduler`) spreads ``lum``'s per-scan
-    blocks over a cluster; the other methods run here.
+    blocks over a cluster; the other methods run here. ``tilt`` (:class:`slam6d.attitude.TiltPrior`,
+    an inclinometer's readings) is a prior on each scan's roll and pitch in ``lum`` and ``graph``;
+    ``simultaneous`` refuses it rather than ignore a measurement it was handed.
     """
     fixed = list(fixed)
     current = [np.asarray(p, dtype=np.float64) for p in poses]
@@ -95,6 +99,11 @@ def relax_poses(
             cancel=cancel,
             links=links,
             scheduler=scheduler,
+            tilt=tilt,
+        )
+    if tilt is not None and method == "simultaneous":
+        raise Slam6dError(
+            "relaxation 'simultaneous' has no tilt prior; the inclinometer's readings need 'lum' or 'graph'"
         )
     if method == "simultaneous":
         return simultaneous_matching(
@@ -105,7 +114,7 @@ def relax_poses(
             chosen = set(members)
             fixed = sorted(set(fixed) | (set(range(len(current))) - chosen))
             edges = [e for e in edges if e.i in chosen and e.j in chosen]
-        return graph_relaxation(models, current, edges, fixed, config, progress, cancel, edge_progress)
+        return graph_relaxation(models, current, edges, fixed, config, progress, cancel, edge_progress, tilt)
     raise Slam6dError(f"unknown relaxation '{method}'; known: {', '.join(RELAXATION_METHODS)}")
 
 

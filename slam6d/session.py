@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from slam6d.attitude import declared_tilt_noise
 from slam6d.camera_path import Keyframe, keyframe_from_dict, keyframe_to_dict
 from slam6d.errors import FormatError, InvalidValueError, SessionError
 from slam6d.geometry import CONVENTIONS, FrameConvention, Matrix
@@ -120,7 +121,10 @@ class Session:
         """Make a new session folder over existing scans (which stay where they are).
 
         The source is validated now (format known, scans discoverable) so that a bad folder is
-        refused at creation rather than when someone first opens the session.
+        refused at creation rather than when someone first opens the session. A source that
+        declares an inclinometer (:func:`slam6d.attitude.declared_tilt_noise`: a simulated
+        session) puts its noise into ``[engine] tilt_noise_deg`` unless ``engine`` sets it, so the
+        workbench's runs hold the scans' tilt as ``slam6d run`` does on the same folder.
         """
         folder = Path(folder)
         if (folder / SESSION_FILE).exists():
@@ -141,6 +145,11 @@ class Session:
             if resolved.is_dir():
                 list_scan_files(resolved, fmt)
         assert fmt is not None
+        engine = dict(engine or {})
+        if "tilt_noise_deg" not in engine:  # the source's inclinometer, written down where it can be seen and changed
+            declared = [declared_tilt_noise(s if s.is_absolute() else folder / s) for s in sources]
+            if len(set(declared)) == 1 and declared[0] is not None:
+                engine["tilt_noise_deg"] = declared[0]
         frame = frame or fmt.convention.name
         if frame not in CONVENTIONS:
             raise SessionError(folder, f"unknown frame '{frame}'; known: {', '.join(sorted(CONVENTIONS))}")
@@ -151,7 +160,7 @@ class Session:
             frame=frame,
             min_range=min_range,
             max_range=max_range,
-            engine=dict(engine or {}),
+            engine=engine,
             created=now(),
         )
         folder.mkdir(parents=True, exist_ok=True)

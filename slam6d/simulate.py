@@ -229,6 +229,11 @@ def simulate_session(
         else "uos (cm, left-handed, y up); no odometry: no .pose files",
         "ground_truth": gt_file.name,
         "odometry": odo_file.name if config.odometry else None,
+        # the odometry's roll and pitch are an inclinometer's (slam6d.motion.drifting_odometry): absolute,
+        # not accumulated, so `slam6d run` may hold each scan's tilt to them (slam6d.attitude)
+        "inclinometer": {"roll_pitch_noise_deg": config.odometry_tilt_noise_deg}
+        if config.odometry and config.odometry_tilt_noise_deg > 0
+        else None,
         "path_length_m": round(simulation.scene.route.length, 3),
         "scene_objects": simulation.scene.objects,
         "scene_triangles": len(simulation.scene.triangles),

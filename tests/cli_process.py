@@ -14,6 +14,8 @@ HEAVY = (
     "numpy",
     "numba",
     "scipy",
+    "scipy.linalg",
+    "scipy.linalg.cython_blas",
     "scipy.spatial",
     "scipy.sparse",
     "open3d",
