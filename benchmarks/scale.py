@@ -275,9 +275,9 @@ def relax_from_truth(directory: Path) -> None:
     config = PipelineConfig()
     pipeline = Pipeline(read_sequence(directory, "uos"), config)
     truth = [UOS.pose_to_canonical(p) for p in read_kitti_poses(directory / "ground_truth_kitti.txt")]
-    if config.relax_registration_models:  # as the relaxation stage hands them over, built at the truth
-        pipeline.poses = [pose.copy() for pose in truth]
-        pipeline.share_relaxation_models()
+    if config.relax_registration_models:  # as the relaxation stage hands them over
+        for k in range(len(pipeline.sequence)):
+            pipeline.models.share_plane_model(k, pipeline.registration_model(k))
     links = [(k - 1, k) for k in range(1, len(truth))]  # what registration relates: each scan to the one before
     result = relax_poses(config.relaxation, pipeline.models, truth, links=links, config=config.relax)
     print(f"| {directory.name} | {split_ate(result.poses, truth)} | {result.iterations} | {os.getloadavg()[0]:.1f} |")
@@ -298,7 +298,10 @@ def profile_relaxation(directory: Path) -> None:
     pipeline = Pipeline(read_sequence(directory, "uos"), replace(config, relaxation="none"))
     pipeline.run()
     if config.relax_registration_models:  # as the relaxation stage hands them over
-        pipeline.share_relaxation_models()
+        for k in range(len(pipeline.sequence)):
+            model = pipeline.registration_model(k)
+            if model is not pipeline.models.index(k):
+                pipeline.models.share_plane_model(k, model)
     profile = cProfile.Profile()
     began = time.perf_counter()
     profile.enable()

@@ -33,7 +33,7 @@ from __future__ import annotations
 import math
 import os
 import time
-from collections.abc import Callable, Generator, Iterator, Sequence
+from collections.abc import Callable, Generator, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from functools import partial
@@ -552,7 +552,7 @@ class Pipeline:
             cfg = self.config
             self.tilt.registered_with(index, cfg.fused_registration_tilt_deg if fusing else cfg.registration_tilt_deg)
         if fusing:
-            fused = self._fused_members(index - 1)
+            fused = list(range(max(0, index - self.config.fused_scans), index))
             return self._fused_model(fused), self.poses[index - 1], fused
         members = list(range(max(0, index - self.config.metascan_scans), index))
         stack = StackedModel([self.registration_model(k) for k in members], [self.poses[k] for k in members])
@@ -566,18 +566,13 @@ class Pipeline:
         share = self.registration_model(index).smallest_cube_share
         return share is not None and share < FUSE_BELOW_CUBE_SHARE
 
-    def _fused_members(self, last: int) -> list[int]:
-        """The scans a fused metascan ending at scan ``last`` joins: the ``fused_scans`` up to it."""
-        return list(range(max(0, last + 1 - self.config.fused_scans), last + 1))
-
-    def _fused_model(self, members: list[int], poses: Sequence[Matrix] | None = None) -> ModelIndex:
+    def _fused_model(self, members: list[int]) -> ModelIndex:
         """The metascan as one model (``fused_scans``): :func:`slam6d.model.fused_model` of the
-        members' reduced scans at their current poses (or ``poses``), in the last member's frame."""
+        members' reduced scans at their current poses, in the last member's frame."""
         like = self.registration_model(members[-1])
-        placed = self.poses if poses is None else poses
         return fused_model(
             [self.models.points[k] for k in members],
-            [placed[k] for k in members],
+            [self.poses[k] for k in members],
             like.normal_neighbours,
             like.normal_voxel_size,
             like.backend,
@@ -628,42 +623,6 @@ class Pipeline:
         first = min(max(0, index - count // 2), max(0, len(self.sequence) - count))
         members = [k for k in range(first, min(first + count, len(self.sequence))) if k != index] + [index]
         return self._fused_model(members)
-
-    def share_relaxation_models(self) -> None:
-        """Hand LUM the models its rounds pair each scan's later neighbours against
-        (:meth:`slam6d.relax.ScanModels.share_plane_model`), built from the current poses.
-
-        A scan that finds its planes alone gets its registration model (plane sample and cube
-        normals built already). Where sequential registration fused (:meth:`_needs_fusing`: a
-        VLP-16 outdoors), scan k gets the metascan scan k+1 was registered against: scans
-        k-``fused_scans``+1 ... k fused in k's frame. Against one scan's rings the relaxation has a
-        bias of its own - the rings' own planes tilt the pairs as they tilted registration's - which
-        started from the campus's truth turned consecutive scans 0.031° RMS apart (250 scans) and
-        left the 1,000 5.2 cm off (docs/scale.md, "Relaxing against the fused neighbourhood").
-
-        Only the scans *before* k are fused with it: a round pairs the points of scan j > k with
-        k's model (:func:`slam6d.relax.neighbour_pairs` orders every pair so), and a model holding
-        j's own points would pair them with themselves and hold the pair at the relative pose the
-        model was built at. The members are fused at the poses they have when this is called
-        (after loop closing), and stay so while the relaxation moves them: on the 1,000-scan campus
-        it changed the relative pose of scans one and two apart by 0.5-0.7 cm and 0.04-0.05°
-        (median; 95th percentile 1.3-1.7 cm and 0.11-0.13°, worst 3.9 cm and 0.27°), which moves
-        a member's surface 10 m out by about 1-2 cm: within the rounds' final robust scale (5 cm)
-        and well within the 0.2 m plane sample, so re-fusing every round would change little.
-        """
-        fuse = self.config.fused_scans > 1
-        now = [pose.copy() for pose in self.poses]  # a model rebuilt in a later round is the first round's
-
-        def build(members: list[int]) -> ModelIndex:
-            return self._fused_model(members, now)
-
-        for k in range(len(self.sequence)):
-            if fuse and k >= 1 and self._needs_fusing(k):
-                self.models.fuse_plane_model(k, self._fused_members(k), build)
-                continue
-            model = self.registration_model(k)
-            if model is not self.models.index(k):
-                self.models.share_plane_model(k, model)
 
     def _guess(self, index: int, start_world: Matrix) -> GuessResult:
         """Octree search against the previous scan (own frame) around :meth:`_search_centre`; returns
@@ -963,7 +922,10 @@ class Pipeline:
             progress.append(RelaxationProgressed(iteration, residual, moved))
 
         if self.config.relaxation == "lum" and self.config.relax_registration_models:
-            self.share_relaxation_models()
+            for k in range(len(self.sequence)):
+                model = self.registration_model(k)
+                if model is not self.models.index(k):
+                    self.models.share_plane_model(k, model)
         # the graph method relaxes over the trajectory and the loops this run accepted
         edges = trajectory_graph(
             len(self.sequence), [GraphEdge(h.i, h.j, h.transform) for h in self.loops if h.accepted]

@@ -22,7 +22,6 @@ the trajectory continuous.
 from __future__ import annotations
 
 import time
-from collections import OrderedDict
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 
@@ -38,7 +37,6 @@ from slam6d.nn import RadiusIndex
 from slam6d.posegraph import check_connected
 
 FloatArray = NDArray[np.float64]
-FUSED_MODELS_KEPT = 64  # fused plane models kept built at once (ScanModels.fuse_plane_model), ~1.2 MB each
 Progress = Callable[[int, float, list[int]], None]  # (iteration, residual, scans moved)
 
 __all__ = [
@@ -104,8 +102,6 @@ class ScanModels:
         self._indices: list[ModelIndex | None] = list(indices) if indices is not None else [None] * len(points)
         self._thinned: dict[tuple[int, int], FloatArray] = {}
         self._plane_models: dict[int, ModelIndex] = {}
-        self._fused: dict[int, tuple[list[int], Callable[[list[int]], ModelIndex]]] = {}
-        self._fused_built: OrderedDict[int, ModelIndex] = OrderedDict()
         self._extents: dict[int, float] = {}
 
     def __len__(self) -> int:
@@ -128,37 +124,7 @@ class ScanModels:
         """Scan k as LUM rounds pair against it: the model handed over by :meth:`share_plane_model`
         when there is one, else :meth:`index` (normals by k-NN, estimated where pairs need them)."""
         model = self._plane_models.get(k)
-        if model is not None:
-            return model
-        if k in self._fused:
-            model = self._fused_built.get(k)
-            if model is None:
-                members, build = self._fused[k]
-                model = build(members)
-                self._fused_built[k] = model
-                if len(self._fused_built) > FUSED_MODELS_KEPT:
-                    self._fused_built.popitem(last=False)
-            self._fused_built.move_to_end(k)
-            return model
-        return self.index(k)
-
-    def fuse_plane_model(self, k: int, members: Sequence[int], build: Callable[[list[int]], ModelIndex]) -> None:
-        """Let LUM rounds pair against scan k fused with the scans before it (``members``, k last, in
-        k's frame): ``build(members)``, made when a round first asks for it and kept among the last
-        ``FUSED_MODELS_KEPT`` asked for. Built once each and kept, the 1,000-scan campus's fused
-        models took 1.4 GB (3.8 instead of 2.3 GB peak); a round asks for each scan's model once,
-        so rebuilding it each round costs a few seconds of CPU instead
-        (:meth:`slam6d.pipeline.Pipeline.share_relaxation_models` says why fused, and why earlier
-        scans only: rounds pair scan k's model with its later neighbours' points, which must not
-        find themselves in it)."""
-        members = list(members)
-        if not members or members[-1] != k or any(j >= k for j in members[:-1]):
-            raise ValueError(
-                f"the fused plane model of scan {k} must end at scan {k} and fuse only earlier scans, not {members}"
-            )
-        self._plane_models.pop(k, None)
-        self._fused_built.pop(k, None)
-        self._fused[k] = (members, build)
+        return model if model is not None else self.index(k)
 
     def share_plane_model(self, k: int, model: ModelIndex) -> None:
         """Let LUM rounds pair against ``model``: scan k's points in its own frame, e.g. the
@@ -169,8 +135,6 @@ class ScanModels:
         with k-NN normals (~0.5 instead of ~0.9-1.0 s), for an ATE of 0.21 instead of 0.20 cm;
         on BALM hall ~3.8 instead of ~6.2 s CPU for an RPE of 0.55 instead of 0.54 cm.
         """
-        self._fused.pop(k, None)
-        self._fused_built.pop(k, None)
         if model.points is not self.points[k] and not np.array_equal(model.points, self.points[k]):
             raise ValueError(f"the plane model of scan {k} holds other points than the scan")
         self._plane_models[k] = model
