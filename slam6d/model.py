@@ -204,7 +204,8 @@ class ModelIndex:
         Points whose partner has no usable normal (a line, too few neighbours) are left out: what
         ICP, loop verification and the workbench's edge residuals all pair with.
 
-        ``scanner`` (where the data points' scanner stands, model frame) also leaves out pairs whose
+        ``scanner`` (where the data points' scanner stands, model frame; or one row per point where
+        they come from several scans) also leaves out pairs whose
         model plane the model's scanner saw from one side and the data scanner stands on the other
         (where the model knows its viewpoints, :meth:`sample_viewpoints`): a thin wall's two faces
         are two surfaces a slab's thickness apart, and within ``max_distance`` a point on one pairs
@@ -220,8 +221,10 @@ class ModelIndex:
         partners = self.sample_points(idx[found])
         views = None if scanner is None else self.sample_viewpoints(idx[found])
         if views is not None and scanner is not None:
+            scanners = np.asarray(scanner, dtype=np.float64)
+            scanners = scanners[found] if scanners.ndim == 2 else scanners.reshape(1, 3)
             seen = np.einsum("ij,ij->i", views - partners, normals)
-            standing = np.einsum("ij,ij->i", np.asarray(scanner, dtype=np.float64).reshape(1, 3) - partners, normals)
+            standing = np.einsum("ij,ij->i", scanners - partners, normals)
             same_side = seen * standing >= 0
             found, partners, normals = found[same_side], partners[same_side], normals[same_side]
         return found, partners, dist[found], normals
