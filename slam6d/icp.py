@@ -79,6 +79,12 @@ class ICPConfig:
     ``hold_below`` > 0 (point-to-plane only): once converged, the translations the pairs fix less
     than this (:func:`translation_constraint`) are held where the caller's ``anchor`` says and ICP
     settles the rest again (see the module docstring); 0 lets ICP end wherever it drifted along them.
+
+    ``facing_pairs`` (point-to-plane only): the data are a scan in its scanner's own frame (the
+    scanner at the origin), so each step tells the model where the data scanner stands and the model
+    leaves out pairs with planes its scanners saw from the other side (a thin wall's far face;
+    :meth:`slam6d.model.ModelIndex.plane_pairs`). Off for data in any other frame (a metascan in
+    world coordinates), where the origin is no scanner.
     """
 
     max_distance: float = 0.25
@@ -94,6 +100,7 @@ class ICPConfig:
     threads: int = 2
     nn_backend: str = nn.DEFAULT_BACKEND
     hold_below: float = 0.0
+    facing_pairs: bool = False
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -328,17 +335,22 @@ def translation_constraint(data: FloatArray, normals: FloatArray) -> Translation
 
 
 def _pairs(
-    model: ModelIndex, moved: FloatArray, max_distance: float, point_to_plane: bool
+    model: ModelIndex,
+    moved: FloatArray,
+    max_distance: float,
+    point_to_plane: bool,
+    scanner: FloatArray | None = None,
 ) -> tuple[IndexArray, FloatArray, FloatArray, FloatArray | None]:
     """(data_idx, paired model points, distances, model normals or None).
 
-    Point-to-plane pairs with the plane sample and drops pairs whose normal is unusable.
+    Point-to-plane pairs with the plane sample and drops pairs whose normal is unusable, and with
+    ``scanner`` (the data scanner in the model frame) those on a face the model saw from the other side.
     """
     if not point_to_plane:
         dist, idx = model.nearest(moved, max_distance)
         data_idx = np.flatnonzero(idx >= 0)
         return data_idx, model.points[idx[data_idx]], dist[data_idx], None
-    return model.plane_pairs(moved, max_distance)
+    return model.plane_pairs(moved, max_distance, scanner)
 
 
 def icp_iterations(
@@ -423,7 +435,8 @@ def _iterate(
         last_stage = stage == len(stages) - 1
         tolerance = config.epsilon if last_stage else max(config.epsilon, config.stage_epsilon)
         moved = transform_points(transform, data)
-        data_idx, paired_model, dist, normals = _pairs(model, moved, max_distance, point_to_plane)
+        scanner = transform[:3, 3] if config.facing_pairs else None
+        data_idx, paired_model, dist, normals = _pairs(model, moved, max_distance, point_to_plane, scanner)
         if len(data_idx) < config.min_pairs:
             usable = " with a usable model normal" if point_to_plane else ""
             raise RegistrationError(

@@ -258,7 +258,9 @@ def _scan_system(models: ScanModels, current: Sequence[Matrix], batch: _ScanBatc
     model = models.plane_model(batch.i)
     relative = relative_poses(current, batch.i, batch.others)
     q = place(batch.points, batch.source, relative)
-    found, partners, _, normals = model.plane_pairs(q, models.config.max_distance)
+    # each point's scanner in scan i's frame: pairs keep to the faces scan i saw from the same side
+    scanners = relative[:, :3, 3][batch.source]
+    found, partners, _, normals = model.plane_pairs(q, models.config.max_distance, scanners)
     blocks, gradients, sums = _pair_blocks(
         q, batch.points, found, partners, normals, relative, batch.source, len(batch.others), float(robust_scale)
     )

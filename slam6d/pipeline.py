@@ -304,7 +304,8 @@ class Pipeline:
         self.skipped: list[int] = []  # scans sequential registration could not place (ScanSkipped)
         self.links: list[tuple[int, int]] = []  # (model scan, scan) of every sequential registration
         self._cancel: Callable[[], bool] | None = None
-        self._icp_config = models_icp_config(config.icp, config.voxel_size)  # the models are reduced already
+        # the models are reduced already; the scans matched against them lie in their scanners' frames
+        self._icp_config = replace(models_icp_config(config.icp, config.voxel_size), facing_pairs=True)
         # sequential matches only need to hand loop closing and relaxation a close start
         self._sequential_config = replace(
             self._icp_config,

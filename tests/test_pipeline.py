@@ -15,6 +15,7 @@ from slam6d.io.frames import read_frames
 from slam6d.io.poses import read_kitti_poses
 from slam6d.io.uos import NO_ECHO_RANGE_CM
 from slam6d.metrics import absolute_trajectory_error
+from slam6d.model import ModelIndex
 from slam6d.pipeline import Cancelled, Pipeline, PipelineConfig, write_results
 from slam6d.scan import Scan, ScanSequence
 from slam6d.simulate import SimulationConfig, simulated_scans
@@ -454,7 +455,9 @@ def test_stacked_model_pairs_like_the_union_of_its_members() -> None:
 
 
 @pytest.mark.parametrize("trust", [True, False])
-def test_searches_in_the_campus_turn_at_scan_269_stay_with_the_odometry(trust: bool) -> None:
+def test_searches_in_the_campus_turn_at_scan_269_stay_with_the_odometry(
+    trust: bool, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """The campus of 1,000 scans (seed 3) turns 8-24° per 3 m step at scans 266-269; there every
     fit pairs few points, the octree and feature searches run, and the feature guess pairs scan 268
     in a wrong basin (the other way round, 170° off, or 3 m along the street: RANSAC's threads make
@@ -476,6 +479,12 @@ def test_searches_in_the_campus_turn_at_scan_269_stay_with_the_odometry(trust: b
             break
     sequence = ScanSequence([Scan(clouds[k], simulation.odometry[k].copy(), f"scan{k}", has_pose=True) for k in wanted])
     limits = {} if trust else {"odometry_trust_m": math.inf, "odometry_trust_deg": math.inf}
+    if not trust:
+        # Pairs kept to the faces each scanner saw (ModelIndex.plane_pairs) also refuse many of the
+        # wrong basin's pairs (the street the other way round pairs walls' backs): with them the
+        # feature guess did not win here (every step within 3.1 cm). The models are left without
+        # viewpoints so that the scene still shows what the odometry bound is for.
+        monkeypatch.setattr(ModelIndex, "sample_viewpoints", lambda self, sample: None)
     config = PipelineConfig(loops=False, relaxation="none", min_fitness=1.0, relative_fitness=1.0, **limits)
     pipeline = Pipeline(sequence, config)
     pipeline.run()
