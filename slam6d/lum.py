@@ -34,6 +34,7 @@ from slam6d.block_system import BlockSystem
 from slam6d.errors import RelaxationError
 from slam6d.geometry import Matrix, invert, make_pose, so3_exp, transform_points
 from slam6d.icp import correspondences, icp
+from slam6d.model import on_the_seen_side
 from slam6d.nn import build_index
 from slam6d.posegraph import PoseEdge, point_pair_information
 from slam6d.relax import (
@@ -203,12 +204,15 @@ class _SharedBatch:
     source: NDArray[np.int64]
     pairs: int
     backend: str
+    views: FloatArray | None = None  # where scan i's scanner saw each sample point from, if known
 
 
 def _shared_batch(models: ScanModels, batch: _ScanBatch) -> _SharedBatch:
-    sample, normals, usable = models.plane_model(batch.i).plane_normals()
-    backend = models.plane_model(batch.i).backend
-    return _SharedBatch(sample, normals, usable, batch.points, batch.source, len(batch.others), backend)
+    model = models.plane_model(batch.i)
+    sample, normals, usable = model.plane_normals()
+    views = model.sample_viewpoints(np.arange(len(sample)))
+    views = None if views is None else np.ascontiguousarray(views)
+    return _SharedBatch(sample, normals, usable, batch.points, batch.source, len(batch.others), model.backend, views)
 
 
 def _remote_scan_system(
@@ -220,6 +224,12 @@ def _remote_scan_system(
     _, idx = build_index(shared.sample, shared.backend, threads=1).nearest(q, max_distance)
     found = np.flatnonzero(idx >= 0)
     found = found[shared.usable[idx[found]]]
+    if shared.views is not None:  # as ModelIndex.plane_pairs: keep to the faces scan i saw
+        scanners = relative[:, :3, 3][shared.source[found]]
+        partner = idx[found]
+        found = found[
+            on_the_seen_side(shared.views[partner], scanners, shared.sample[partner], shared.normals[partner])
+        ]
     partner = idx[found]
     return _pair_blocks(
         q,

@@ -36,6 +36,18 @@ NORMAL_VOXEL_SIZE = 0.05  # metres: the plane sample's voxel (0 = the raw points
 FACE_SIDE_MARGIN = 0.05
 
 
+def on_the_seen_side(
+    views: FloatArray, scanners: FloatArray, partners: FloatArray, normals: FloatArray
+) -> NDArray[np.bool_]:
+    """Per pair: whether the data scanner (``scanners``, one row or one per pair) does not stand
+    clearly on the other side of the partner's plane than the model's scanner that saw it
+    (``views``), i.e. whether the pair may be kept (see :meth:`ModelIndex.plane_pairs`)."""
+    seen = np.einsum("ij,ij->i", views - partners, normals)
+    standing = np.einsum("ij,ij->i", scanners - partners, normals)
+    margin = FACE_SIDE_MARGIN
+    return ~(((seen > margin) & (standing < -margin)) | ((seen < -margin) & (standing > margin)))
+
+
 class ModelIndex:
     """Model points with their search structures built once and reused, e.g. for a metascan (the
     union of registered scans) against which many data scans are registered.
@@ -231,10 +243,7 @@ class ModelIndex:
         if views is not None and scanner is not None:
             scanners = np.asarray(scanner, dtype=np.float64)
             scanners = scanners[found] if scanners.ndim == 2 else scanners.reshape(1, 3)
-            seen = np.einsum("ij,ij->i", views - partners, normals)
-            standing = np.einsum("ij,ij->i", scanners - partners, normals)
-            margin = FACE_SIDE_MARGIN
-            same_side = ~(((seen > margin) & (standing < -margin)) | ((seen < -margin) & (standing > margin)))
+            same_side = on_the_seen_side(views, scanners, partners, normals)
             found, partners, normals = found[same_side], partners[same_side], normals[same_side]
         return found, partners, dist[found], normals
 
