@@ -54,7 +54,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from slam6d.errors import Slam6dError
-from slam6d.geometry import Matrix
+from slam6d.geometry import Matrix, rot_z
 
 FloatArray = NDArray[np.float64]
 
@@ -238,8 +238,7 @@ def heading_only(correction: Matrix, kept: FloatArray) -> Matrix:
     correction = np.asarray(correction, dtype=np.float64)
     rotation = correction[:3, :3]
     yaw = math.atan2(rotation[1, 0] - rotation[0, 1], rotation[0, 0] + rotation[1, 1])
-    cosine, sine = math.cos(yaw), math.sin(yaw)
-    level = np.array([[cosine, -sine, 0.0], [sine, cosine, 0.0], [0.0, 0.0, 1.0]])
+    level = rot_z(yaw)
     kept = np.asarray(kept, dtype=np.float64)
     out = np.eye(4)
     out[:3, :3] = level
