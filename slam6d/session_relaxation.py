@@ -21,10 +21,11 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from slam6d.attitude import TiltPrior
-from slam6d.errors import InvalidValueError, SessionError
+from slam6d.attitude import TiltPrior, heading_only
+from slam6d.errors import Cancelled, InvalidValueError, SessionError
 from slam6d.geometry import Matrix, check_rigid
 from slam6d.journal import Revision
+from slam6d.loops import LoopHypothesis, diffuse_loop_correction, loop_correction
 from slam6d.pipeline import (
     PipelineConfig,
     fuses_scans,
@@ -41,7 +42,7 @@ from slam6d.session_graph import graph_edges, sequential_links
 if TYPE_CHECKING:
     from slam6d.scheduler import Scheduler
 
-__all__ = ["Readings", "relax_revision", "revision_tilt_prior", "session_readings"]
+__all__ = ["Readings", "close_revision_loops", "relax_revision", "revision_tilt_prior", "session_readings"]
 
 
 @dataclass(frozen=True)
@@ -146,3 +147,30 @@ def relax_revision(
         scheduler=scheduler,
         tilt=tilt,
     )
+
+
+def close_revision_loops(
+    poses: Sequence[Matrix],
+    loops: Sequence[LoopHypothesis],
+    keep_tilt: bool,
+    cancel: Callable[[], bool] | None = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> list[Matrix]:
+    """Error diffusion over each of ``loops`` in turn (each needs its ICP ``transform``), from
+    ``poses``: the workbench's *Close loops* on a revision. With ``keep_tilt`` (the session holds
+    an inclinometer's readings) each correction turns only about "up" and keeps its loop end's
+    position (:func:`slam6d.attitude.heading_only`), as ``slam6d run``'s loop closing does: a loop's
+    relative tilt is a registration's (0.1-0.5° off on the campus's revisits) and would otherwise
+    tilt every later scan off its reading. :class:`~slam6d.errors.Cancelled` when ``cancel()``
+    turns true; ``progress(done, total)`` after each loop."""
+    current = [np.asarray(p, dtype=np.float64) for p in poses]
+    for n, loop in enumerate(loops):
+        if cancel is not None and cancel():
+            raise Cancelled("loop closing cancelled")
+        correction = loop_correction(current, loop)
+        if keep_tilt:
+            correction = heading_only(correction, current[loop.j][:3, 3])
+        current = diffuse_loop_correction(current, loop.i, loop.j, correction)
+        if progress is not None:
+            progress(n + 1, len(loops))
+    return current

@@ -4,6 +4,7 @@ taken from revision 0, and nothing changes for a session that declares none."""
 
 from __future__ import annotations
 
+import math
 import shutil
 from pathlib import Path
 
@@ -17,11 +18,13 @@ from slam6d.attitude import measured_up, tilt_error_deg
 from slam6d.cli import app as cli
 from slam6d.engine_settings import pipeline_config
 from slam6d.errors import SessionError
-from slam6d.geometry import UOS, Matrix
+from slam6d.geometry import UOS, Matrix, invert, pose_from_xyzrpy
 from slam6d.io.poses import read_kitti_poses
+from slam6d.loops import LoopHypothesis
 from slam6d.relaxation_methods import reduced_models, relax_poses
 from slam6d.session import Session
 from slam6d.session_graph import graph_edges, sequential_links
+from slam6d.session_relaxation import close_revision_loops
 from slam6d.simulate import SimulationConfig, simulate_session
 from tests.session_fixtures import corridor_session
 
@@ -144,3 +147,40 @@ def test_the_prior_without_readings_is_refused_naming_where_they_would_be(tmp_pa
     assert simultaneous.exit_code == 2 and "simultaneous" in simultaneous.output
     negative = CliRunner().invoke(cli, ["relax", str(folder), "--tilt-noise-deg", "-1"])
     assert negative.exit_code == 2 and "--tilt-noise-deg" in negative.output
+
+
+def test_closing_a_loop_on_a_revision_keeps_the_tilt_where_readings_are_held() -> None:
+    """A loop whose verified transform is 1° off in pitch (a registration's relative tilt) tilts
+    every scan after it by that much when closed plainly; with the readings held its correction
+    turns about "up" only: every scan keeps its tilt, and the loop's end still lands where the loop
+    puts it."""
+    poses = [pose_from_xyzrpy(3.0 * k, 0.2 * k, 0.0, 0.0, 0.0, math.radians(2.0 * k)) for k in range(8)]
+    said = invert(poses[0]) @ poses[5] @ pose_from_xyzrpy(0.3, -0.2, 0.05, 0.0, math.radians(1.0), math.radians(3.0))
+    loop = LoopHypothesis(0, 5, 0.0, 0.0, transform=said)
+    plain = close_revision_loops(poses, [loop], keep_tilt=False)
+    kept = close_revision_loops(poses, [loop], keep_tilt=True)
+    tilt = [tilt_error_deg(after, measured_up(before)) for before, after in zip(poses, plain, strict=True)]
+    assert max(tilt[5:]) == pytest.approx(1.0, abs=0.05)
+    for before, after in zip(poses, kept, strict=True):
+        assert tilt_error_deg(after, measured_up(before)) < 1e-6
+    np.testing.assert_allclose(kept[5][:3, 3], plain[5][:3, 3], atol=1e-9)
+    assert np.linalg.norm(kept[5][:3, 3] - poses[5][:3, 3]) > 0.3  # it did close the loop
+
+
+def test_the_workbench_close_loops_job_keeps_the_tilt_of_a_declared_session(campus: Path, tmp_path: Path) -> None:
+    """The Close loops job hands the session's declaration to the engine: a session holding an
+    inclinometer closes its loop edges keeping every scan's tilt, and its journal entry says so."""
+    root = tmp_path / "sessions"
+    before = registered_session(root, campus).poses()
+    with TestClient(create_app(root, viewers=False), base_url="http://127.0.0.1") as client:
+        assert client.post("/api/sessions/campus/edges", json={"i": 0, "j": 3, "force": True}).status_code == 201
+        response = client.post("/api/sessions/campus/close-loops", json={})
+        assert response.status_code == 202, response.text
+        job = client.app.state.workbench.jobs.wait(response.json()["id"], timeout=300)  # type: ignore[attr-defined]
+        assert job.status == "done", job.message
+        after = client.app.state.workbench.current_poses("campus")  # type: ignore[attr-defined]
+    (entry,) = [e for e in Session.open(root / "campus").journal.entries() if e.kind == "close_loops"]
+    assert entry.parameters["tilt_kept"] is True
+    assert max(np.abs(a - b).max() for a, b in zip(before, after, strict=True)) > 1e-6  # it moved scans
+    for a, b in zip(before, after, strict=True):  # to the rounding of a stored revision
+        assert tilt_error_deg(b, measured_up(a)) < 1e-3

@@ -17,12 +17,11 @@ import numpy as np
 from app.editing.context import EditContext
 from app.jobs import Cancel, Progress, Work
 from app.workbench import EditError
-from slam6d.errors import Cancelled
-from slam6d.loops import LoopHypothesis, diffuse_loop_correction, loop_correction
+from slam6d.loops import LoopHypothesis
 from slam6d.posegraph import check_connected
 from slam6d.relaxation_methods import RELAXATION_METHODS
 from slam6d.residuals import displacements
-from slam6d.session_relaxation import relax_revision, revision_tilt_prior, session_readings
+from slam6d.session_relaxation import close_revision_loops, relax_revision, revision_tilt_prior, session_readings
 
 
 class Relaxation:
@@ -40,15 +39,18 @@ class Relaxation:
 
         def work(progress: Progress, cancel: Cancel) -> dict[str, Any]:
             start = context.workbench.head(session_id)  # the revision this job works from
-            poses = list(start.poses)
-            before = [p.copy() for p in poses]
-            for n, edge in enumerate(loops):
-                if cancel():
-                    raise Cancelled("loop closing cancelled")
-                hyp = LoopHypothesis(edge["i"], edge["j"], 0.0, 0.0, transform=np.asarray(edge["transform"]))
-                poses = diffuse_loop_correction(poses, hyp.i, hyp.j, loop_correction(poses, hyp))
-                progress("closing loops", n + 1, len(loops))
-            params = {"loops": [[e["i"], e["j"]] for e in loops], "displacement": displacements(before, poses)}
+            before = list(start.poses)
+            scans = context.workbench.state(session_id).sequence().scans
+            keep_tilt = context.config(session_id).tilt_noise_deg is not None and any(s.has_pose for s in scans)
+            hypotheses = [LoopHypothesis(e["i"], e["j"], 0.0, 0.0, transform=np.asarray(e["transform"])) for e in loops]
+            poses = close_revision_loops(
+                before, hypotheses, keep_tilt, cancel, lambda done, total: progress("closing loops", done, total)
+            )
+            params = {
+                "loops": [[e["i"], e["j"]] for e in loops],
+                "tilt_kept": keep_tilt,
+                "displacement": displacements(before, poses),
+            }
             return context.commit_checked(session_id, poses, author, "close_loops", params, base=start.number)
 
         return work
