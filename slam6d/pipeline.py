@@ -42,7 +42,7 @@ from typing import Any
 
 import numpy as np
 
-from slam6d.attitude import PLANES_TILT_DEG, RINGS_TILT_DEG, TiltPrior, heading_only
+from slam6d.attitude import PLANES_TILT_DEG, RINGS_TILT_DEG, Readings, TiltPrior, heading_only
 from slam6d.errors import DisconnectedGraphError, RegistrationError, RelaxationError, Slam6dError
 from slam6d.events import (
     Event,
@@ -272,11 +272,14 @@ class Pipeline:
         config: PipelineConfig = PipelineConfig(),
         store: ScanStore | None = None,
         scheduler: Scheduler | None = None,
+        readings: Readings | None = None,
     ) -> None:
         """``store``: the scans' points on disk (:mod:`slam6d.scan_store`), read once for the reduction
         instead of from ``sequence``, whose scans then need only their poses and names.
         ``scheduler`` (:mod:`slam6d.scheduler`): where the reduction and LUM's per-scan blocks run
-        (a Dask cluster's workers read a store themselves); None keeps everything in this process."""
+        (a Dask cluster's workers read a store themselves); None keeps everything in this process.
+        ``readings``: the inclinometer's readings where they are not the scans' own poses (a session
+        registered again from a later revision: :func:`slam6d.session_relaxation.registration_readings`)."""
         if len(sequence) == 0:
             raise Slam6dError("the sequence has no scans")
         self.sequence = sequence
@@ -286,7 +289,10 @@ class Pipeline:
         self.poses: list[Matrix] = [p.copy() for p in self.odometry]
         # the odometry's roll and pitch as an inclinometer's readings, where the session has one
         # (each scan's weight is set when registration chooses its model: _model)
-        self.tilt = inclinometer_prior(config, self.odometry, self.has_odometry)
+        held = readings or Readings(self.odometry, self.has_odometry)
+        if len(held.poses) != len(sequence) or len(held.measured) != len(sequence):
+            raise Slam6dError(f"readings for {len(held.poses)} scans, the sequence has {len(sequence)}")
+        self.tilt = inclinometer_prior(config, held.poses, held.measured)
         self.history: list[list[tuple[Matrix, int]]] = [[(p.copy(), FrameType.ICP_INACTIVE)] for p in self.poses]
         self.registered = 1  # scan 0 anchors the map
         self.done = False

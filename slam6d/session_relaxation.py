@@ -16,12 +16,11 @@ with them the relaxation holds each scan's "up" exactly as ``slam6d run``'s rela
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
 
-from slam6d.attitude import TiltPrior, heading_only
+from slam6d.attitude import Readings, TiltPrior, heading_only
 from slam6d.errors import Cancelled, InvalidValueError, SessionError
 from slam6d.geometry import Matrix, check_rigid
 from slam6d.journal import Revision
@@ -42,16 +41,7 @@ from slam6d.session_graph import graph_edges, sequential_links
 if TYPE_CHECKING:
     from slam6d.scheduler import Scheduler
 
-__all__ = ["Readings", "close_revision_loops", "relax_revision", "revision_tilt_prior", "session_readings"]
-
-
-@dataclass(frozen=True)
-class Readings:
-    """The odometry poses a session's scans carried (canonical ``world_from_scan``) and, per scan,
-    whether its file carried one (scans without a pose have no reading)."""
-
-    poses: list[Matrix]
-    measured: list[bool]
+__all__ = ["close_revision_loops", "registration_readings", "relax_revision", "revision_tilt_prior", "session_readings"]
 
 
 def session_readings(session: Session, measured: Sequence[bool]) -> Readings:
@@ -83,6 +73,16 @@ def session_readings(session: Session, measured: Sequence[bool]) -> Readings:
         except InvalidValueError as exc:  # a journal edited by hand: stored poses are checked on writing
             raise SessionError(journal, f"the odometry of {exc}") from None
     return Readings(poses, [bool(m) for m in measured])
+
+
+def registration_readings(session: Session, config: PipelineConfig, measured: Sequence[bool]) -> Readings | None:
+    """The readings a registration of ``session`` holds (``Pipeline(readings=...)``): revision 0's
+    where ``config`` declares an inclinometer and some scan carried a pose, else None (nothing to
+    hold). A workbench run starts from the session's head, whose poses are an earlier run's
+    estimate: taken for the readings, they would hold every scan to the tilt that run reached."""
+    if config.tilt_noise_deg is None or not any(measured):
+        return None
+    return session_readings(session, measured)
 
 
 def revision_tilt_prior(

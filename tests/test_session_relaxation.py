@@ -184,3 +184,25 @@ def test_the_workbench_close_loops_job_keeps_the_tilt_of_a_declared_session(camp
     assert max(np.abs(a - b).max() for a, b in zip(before, after, strict=True)) > 1e-6  # it moved scans
     for a, b in zip(before, after, strict=True):  # to the rounding of a stored revision
         assert tilt_error_deg(b, measured_up(a)) < 1e-3
+
+
+def test_a_workbench_run_from_a_later_revision_holds_revision_0s_readings(campus: Path, tmp_path: Path) -> None:
+    """A registration job starts from the session's head; the inclinometer's readings stay those of
+    revision 0. With a head whose every scan after the first is tilted 1° (an earlier estimate gone
+    wrong), the run holds the scans to the odometry's readings, not to that tilt."""
+    root = tmp_path / "sessions"
+    session = registered_session(root, campus)
+    truth = session.poses()
+    tilted = [truth[0]] + [p @ pose_from_xyzrpy(0.0, 0.0, 0.0, math.radians(1.0), 0.0, 0.0) for p in truth[1:]]
+    session.journal.commit(tilted, "test", "manual_move", {})
+    parameters = {"loops": False, "relaxation": "none"}
+    with TestClient(create_app(root, viewers=False), base_url="http://127.0.0.1") as client:
+        response = client.post("/api/sessions/campus/jobs", json={"kind": "register", "parameters": parameters})
+        assert response.status_code == 202, response.text
+        job = client.app.state.workbench.jobs.wait(response.json()["id"], timeout=600)  # type: ignore[attr-defined]
+        assert job.status == "done", job.message
+        registered = client.app.state.workbench.current_poses("campus")  # type: ignore[attr-defined]
+    off_truth = off_readings(registered, truth)[2:]
+    off_head = off_readings(registered, tilted)[2:]
+    assert np.sqrt(np.mean(off_truth**2)) < 0.25, off_truth
+    assert off_head.min() > 0.75, off_head
