@@ -1,16 +1,22 @@
-"""Relaxing a session's stored revision again: the one call behind ``slam6d relax`` and the workbench's Relax.
+"""Working on a session's stored revision again: ``slam6d relax`` and the workbench's Relax, Close loops and runs.
 
 A revision is relaxed without the run that made it, so what that run knew besides the scans has to
 be found again in the session: its graph (the sequential links and the edges of
 :mod:`slam6d.session_graph`) and, where the session declares an inclinometer (``[engine]
-tilt_noise_deg``; :func:`slam6d.attitude.declared_tilt_noise` writes it for a simulated folder),
-the readings. Those are the odometry's roll and pitch: revision 0 of the journal, the poses the
-scan files carried (written when the session was first opened), for the scans whose file carried a
-pose. Relaxing without them lets the scan pairs' systematic relative tilt (0.1° per step between a
-VLP-16's rings) bend the map up and down again where registration had held it to the readings;
-with them the relaxation holds each scan's "up" exactly as ``slam6d run``'s relaxation stage does
-(:func:`revision_tilt_prior`: the same readings, weighed by the same rule,
-:func:`slam6d.pipeline.registration_tilt_deg`).
+tilt_noise_deg``, which :meth:`slam6d.session.Session.create` writes for a folder that declares
+one), the readings. Those are the odometry's roll and pitch: revision 0 of the journal, the poses
+the scan files carried (written when the session was first opened), for the scans whose file
+carried a pose (:func:`session_readings`). Relaxing without them lets the scan pairs' systematic
+relative tilt (0.1° per step between a VLP-16's rings) bend the map up and down again where
+registration had held it to the readings. Here each door gets what ``slam6d run`` does with them:
+
+* :func:`relax_revision` with :func:`revision_tilt_prior` (``slam6d relax``, the workbench's
+  *Relax*): the same readings weighed by the same rule as the run's relaxation stage
+  (:func:`slam6d.pipeline.registration_tilt_deg`);
+* :func:`close_revision_loops` (the workbench's *Close loops*): corrections that keep the tilt
+  (:func:`slam6d.attitude.heading_only`), as the run's loop closing;
+* :func:`registration_readings` (the workbench's registration runs, which start from the head):
+  revision 0's readings, not the head's estimate.
 """
 
 from __future__ import annotations
