@@ -42,7 +42,7 @@ from typing import Any
 
 import numpy as np
 
-from slam6d.attitude import PLANES_TILT_DEG, RINGS_TILT_DEG, TiltPrior, heading_only
+from slam6d.attitude import PLANES_TILT_DEG, RINGS_TILT_DEG, Readings, TiltPrior, heading_only
 from slam6d.errors import DisconnectedGraphError, RegistrationError, RelaxationError, Slam6dError
 from slam6d.events import (
     Event,
@@ -272,11 +272,14 @@ class Pipeline:
         config: PipelineConfig = PipelineConfig(),
         store: ScanStore | None = None,
         scheduler: Scheduler | None = None,
+        readings: Readings | None = None,
     ) -> None:
         """``store``: the scans' points on disk (:mod:`slam6d.scan_store`), read once for the reduction
         instead of from ``sequence``, whose scans then need only their poses and names.
         ``scheduler`` (:mod:`slam6d.scheduler`): where the reduction and LUM's per-scan blocks run
-        (a Dask cluster's workers read a store themselves); None keeps everything in this process."""
+        (a Dask cluster's workers read a store themselves); None keeps everything in this process.
+        ``readings``: the inclinometer's readings where they are not the scans' own poses (a session
+        registered again from a later revision: :func:`slam6d.session_relaxation.registration_readings`)."""
         if len(sequence) == 0:
             raise Slam6dError("the sequence has no scans")
         self.sequence = sequence
@@ -285,11 +288,11 @@ class Pipeline:
         self.has_odometry = [bool(scan.has_pose) for scan in sequence]
         self.poses: list[Matrix] = [p.copy() for p in self.odometry]
         # the odometry's roll and pitch as an inclinometer's readings, where the session has one
-        self.tilt: TiltPrior | None = None
-        if config.tilt_noise_deg is not None and any(self.has_odometry):
-            self.tilt = TiltPrior.from_poses(
-                self.odometry, self.has_odometry, config.tilt_noise_deg, config.registration_tilt_deg
-            )  # each scan's entry is set when registration chooses its model (_model)
+        # (each scan's weight is set when registration chooses its model: _model)
+        held = readings or Readings(self.odometry, self.has_odometry)
+        if len(held.poses) != len(sequence) or len(held.measured) != len(sequence):
+            raise Slam6dError(f"readings for {len(held.poses)} scans, the sequence has {len(sequence)}")
+        self.tilt = inclinometer_prior(config, held.poses, held.measured)
         self.history: list[list[tuple[Matrix, int]]] = [[(p.copy(), FrameType.ICP_INACTIVE)] for p in self.poses]
         self.registered = 1  # scan 0 anchors the map
         self.done = False
@@ -440,20 +443,7 @@ class Pipeline:
                 self._preparing[index] = self._worker.submit(self._prepare, index)
 
     def _prepare(self, index: int) -> tuple[ModelIndex, np.ndarray]:
-        shared = self.models.index(index)
-        cell = self.config.normal_cell_voxels * self.config.voxel_size
-        model = shared
-        if cell > 0 and len(shared.plane_indices) == len(shared.points):
-            model = ModelIndex(
-                shared.points,
-                normal_neighbours=shared.normal_neighbours,
-                normal_voxel_size=self.config.sample_voxels * self.config.voxel_size,
-                backend=shared.backend,
-                threads=shared.threads,
-                normal_cell=cell,
-                index=shared.index,
-                viewpoint=np.zeros(3),  # reduced scans stay in their own frame: the scanner at the origin
-            )
+        model = registration_model(self.models.index(index), self.config)
         # every normal now (per cube, k-NN where a cube gives none), so that ICP on the main thread
         # never waits for one: estimating them there, on demand, was a fifth of the registration time
         model.plane_normals()
@@ -548,10 +538,9 @@ class Pipeline:
         """Model for scan ``index``: (index, world_from_model, scans in it)."""
         if self.config.matching == "pairwise":
             return self.registration_model(index - 1), self.poses[index - 1], [index - 1]
-        fusing = self.config.fused_scans > 1 and index >= 2 and self._needs_fusing(index - 1)
+        fusing = fuses_scans(self.config, index, self._needs_fusing)
         if self.tilt is not None:  # what the fit's tilt is worth, for weighing the inclinometer against it
-            cfg = self.config
-            self.tilt.registered_with(index, cfg.fused_registration_tilt_deg if fusing else cfg.registration_tilt_deg)
+            self.tilt.registered_with(index, registration_tilt_deg(self.config, fusing))
         if fusing:
             fused = list(range(max(0, index - self.config.fused_scans), index))
             return self._fused_model(fused), self.poses[index - 1], fused
@@ -564,8 +553,7 @@ class Pipeline:
         a plane for fewer than ``FUSE_BELOW_CUBE_SHARE`` of its plane sample (a multi-beam lidar
         outdoors). Dense and close-range scans find their planes alone, and a fused model costs
         them time for nothing (BALM's hall: RPE 0.57 instead of 0.54 cm, registration ~3x)."""
-        share = self.registration_model(index).smallest_cube_share
-        return share is not None and share < FUSE_BELOW_CUBE_SHARE
+        return needs_fusing(self.registration_model(index))
 
     def _fused_model(self, members: list[int]) -> ModelIndex:
         """The metascan as one model (``fused_scans``): :func:`slam6d.model.fused_model` of the
@@ -1032,6 +1020,56 @@ class Pipeline:
             failure=self.failure,
             components=[list(c) for c in self.components],
         )
+
+
+def inclinometer_prior(config: PipelineConfig, odometry: list[Matrix], has_odometry: list[bool]) -> TiltPrior | None:
+    """The odometry's roll and pitch as an inclinometer's readings (:class:`slam6d.attitude.TiltPrior`)
+    where ``config.tilt_noise_deg`` says the odometry carries one and some scan has odometry; None
+    otherwise. Every scan is weighed as one finding its planes alone until
+    :func:`registration_tilt_deg` says how it was registered."""
+    if config.tilt_noise_deg is None or not any(has_odometry):
+        return None
+    return TiltPrior.from_poses(odometry, has_odometry, config.tilt_noise_deg, config.registration_tilt_deg)
+
+
+def registration_model(shared: ModelIndex, config: PipelineConfig) -> ModelIndex:
+    """A scan's sequential-matching model over its reduced points' ``shared`` model (same kd-tree):
+    per-cube normals over cubes of ``normal_cell_voxels`` x ``voxel_size`` and a plane sample of one
+    point per ``sample_voxels`` x ``voxel_size`` cube, where those are set; ``shared`` itself otherwise."""
+    cell = config.normal_cell_voxels * config.voxel_size
+    if cell <= 0 or len(shared.plane_indices) != len(shared.points):
+        return shared
+    return ModelIndex(
+        shared.points,
+        normal_neighbours=shared.normal_neighbours,
+        normal_voxel_size=config.sample_voxels * config.voxel_size,
+        backend=shared.backend,
+        threads=shared.threads,
+        normal_cell=cell,
+        index=shared.index,
+        viewpoint=np.zeros(3),  # reduced scans stay in their own frame: the scanner at the origin
+    )
+
+
+def needs_fusing(model: ModelIndex) -> bool:
+    """Whether a scan whose registration model is ``model`` leaves its planes to the scans' rings:
+    its smallest cubes hold a plane for fewer than ``FUSE_BELOW_CUBE_SHARE`` of its plane sample (a
+    multi-beam lidar outdoors)."""
+    share = model.smallest_cube_share
+    return share is not None and share < FUSE_BELOW_CUBE_SHARE
+
+
+def fuses_scans(config: PipelineConfig, index: int, needs: Callable[[int], bool]) -> bool:
+    """Whether sequential matching registers scan ``index`` against the last ``fused_scans`` scans
+    fused into one model: metascan matching, and the scan before it leaves its planes to its rings
+    (``needs(index - 1)``, :func:`needs_fusing` of that scan's registration model)."""
+    return config.matching != "pairwise" and config.fused_scans > 1 and index >= 2 and needs(index - 1)
+
+
+def registration_tilt_deg(config: PipelineConfig, fused: bool) -> float:
+    """What the tilt of a scan's registration is worth per step (:mod:`slam6d.attitude`): matched
+    against fused scans or finding its planes alone."""
+    return config.fused_registration_tilt_deg if fused else config.registration_tilt_deg
 
 
 def reduce_scan(points: np.ndarray, voxel_size: float) -> np.ndarray:
