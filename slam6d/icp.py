@@ -79,8 +79,9 @@ class ICPConfig:
     BALM pair 1e-4 stops it 0.1° short, 1e-5 within 0.07° of the reference).
 
     ``hold_below`` > 0 (point-to-plane only): once converged, the translations the pairs fix less
-    than this (:func:`translation_constraint`) are held where the caller's :class:`MotionPrior` says and ICP
-    settles the rest again (see the module docstring); 0 lets ICP end wherever it drifted along them.
+    than this (:func:`translation_constraint`) are held where the caller's :class:`MotionPrior` says
+    and ICP settles the rest again (see the module docstring); 0 lets ICP end wherever it drifted
+    along them.
 
     ``facing_pairs`` (point-to-plane only): the data are a scan in its scanner's own frame (the
     scanner at the origin), so each step tells the model where the data scanner stands and the model
@@ -348,7 +349,7 @@ class MotionPrior:
     model puts it now (both in the model frame, metres); ``error``: how far the same model's
     predictions of the last steps were off (metres), None when it has predicted nothing yet.
     Sequential registration without odometry passes the previous scan's position, the
-    constant-velocity prediction and its recent misses (:meth:`slam6d.pipeline.Pipeline.motion_prior`).
+    constant-velocity prediction and its recent misses (``slam6d.pipeline.Pipeline._motion_prior``).
     """
 
     previous: FloatArray
@@ -457,12 +458,14 @@ def _held_at(held: FloatArray, prior: MotionPrior, fitted: FloatArray) -> FloatA
       where the hand moved a few centimetres), and the fit there follows the normals' noise (a
       corridor's height: 5-19 cm from the truth itself). The previous position is kept.
     * It stands out, and the fit is within those misses of the prediction there: the motion is real
-      and the pairs, few as they are, measured it (a car's 2 m step on open ground whose horizontal
-      translations rest on 2 % of the pairs each; the prediction 8 cm off as the car speeds up, ICP
-      from the truth 1.4 cm). The fit stays.
+      and the pairs, few as they are, measured it as well as the prediction could (a car's 2 m step
+      on open ground whose horizontal translations rest on 2 % of the pairs each, the prediction 8 cm
+      off as the car speeds up, ICP from the truth 1.4 cm). The fit stays; such a fit says so
+      (``ICPIteration.weak_along_motion``), and sequential registration tries it again coarse to
+      fine, since its heading rests on the same few pairs.
     * It stands out and the fit left the prediction by more: the pairs let the scan slide (a
-      featureless tunnel) or stick to where the scanner was (the same car a scan later: 1.3 m back
-      towards it). The prediction is kept.
+      featureless tunnel) or stick to where the scanner was (the same car's next scan, in a run
+      without that retry: 1.3 m back towards it). The prediction is kept.
 
     Why the span and not each direction: within a span of two or more barely fixed translations the
     eigenvectors that make up ``held`` are any rotation of each other, so a rule deciding per

@@ -167,9 +167,10 @@ class PipelineConfig:
     kept 2.9 m and 153° off an odometry 6 cm and 1.3° off). ``math.inf`` trusts the searches always.
     ``hold_constraint``: a sequential fit's translations that its pairs fix less than this share
     (:func:`slam6d.icp.translation_constraint`) are held (``ICPConfig.hold_below``): at the odometry's
-    prediction when there is one, else at the constant-velocity prediction if the motion it predicts
-    within the held translations stands out of its recent misses (a car), at the previous scan's
-    position if not (a hand's sway; :meth:`Pipeline._motion_prior`); 0 turns it off. The case: a corridor seen by a VLP-16 or OS1-64 held
+    prediction when there is one, else at the previous scan's position where the motion the
+    constant-velocity prediction puts into them is within its recent misses (a hand's sway), and at
+    the prediction or the fit where it stands out of them (a car's step; :meth:`Pipeline._motion_prior`,
+    :func:`slam6d.icp._held_at`); 0 turns it off. The case: a corridor seen by a VLP-16 or OS1-64 held
     at 1.4 m, whose floor and ceiling lie beyond the beams but for ~1 % of the points. ICP's height
     there follows the normals' noise (from the truth it drifts 5-19 cm) and ended 18-54 cm off from
     the constant-velocity prediction, whose own height is 14-39 cm off (the last step repeated from a
@@ -676,8 +677,7 @@ class Pipeline:
         far constant velocity missed the last ``PREDICTION_HISTORY`` registered steps (the largest
         miss, None before any): what a sequential fit without odometry holds the translations its
         pairs barely fix at (:func:`slam6d.icp._held_at`). Every try of the scan gets the same prior,
-        also one started from a search's winner: a search scores the same barely fixed geometry, so its
-        position along it is no better a guess than the motion model's."""
+        also one started from a search's winner: the prior is the motion model's, whatever the start."""
         misses = []
         for k in range(max(2, index - PREDICTION_HISTORY), index):
             if not {k - 2, k - 1, k} & set(self.skipped):
