@@ -24,10 +24,11 @@ from types import ModuleType
 from typing import Any
 
 VIEWER = "open3d.visualization.draw_plotly"
-"""The module open3d imports for its plotly viewer (open3d 0.17-0.19's ``visualization/__init__``)."""
+"""The module open3d imports for its plotly viewer (``open3d/visualization/__init__.py``, open3d 0.20)."""
 
 VIEWER_FUNCTIONS = ("get_plotly_fig", "draw_plotly", "draw_plotly_server")
-"""What ``open3d.visualization`` imports from it by name."""
+"""What ``open3d.visualization`` imports from it by name. Should an open3d import another name, the
+stand-in's ``__getattr__`` loads the real module for it: the saving is lost, nothing breaks."""
 
 
 def _real_viewer() -> ModuleType:
