@@ -475,12 +475,13 @@ def main() -> None:
         for index, label in enumerate(labels):
             column = [(name, figures[index]) for name, figures in ratios]
             every = [r for _, r in column]
-            no_odometry = [r for name, r in column if "no-odometry" in name] or [np.nan]
+            no_odometry = [r for name, r in column if "no-odometry" in name]
             if every:
                 print(
                     f"slam6d run / small_gicp chain, {label}: median x{np.median(every):.1f},"
-                    f" without odometry median x{np.median(no_odometry):.1f}, worst x{max(every):.1f};"
-                    f" within 3x: {sum(r <= 3 for r in every)}/{len(every)}"
+                    f" without odometry median x{np.median(no_odometry or [np.nan]):.1f}, worst x{max(every):.1f};"
+                    f" within 3x: {sum(r <= 3 for r in every)}/{len(every)},"
+                    f" without odometry {sum(r <= 3 for r in no_odometry)}/{len(no_odometry)}"
                 )
         print(f"({load()})")
 

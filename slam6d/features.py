@@ -10,7 +10,8 @@ it is coarser than the octree search (one voxel, half a metre on room-sized scan
 it does not care how far the start was.
 
 open3d is imported on first use: loading it takes a few seconds that a run which never needs the
-fallback should not pay.
+fallback should not pay; and without its plotly viewer (:mod:`slam6d.open3d_viewer`), half of its
+import cost.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from numpy.typing import NDArray
 
 from slam6d.initial_guess import cloud_extent
 from slam6d.octree import as_points, reduce_points
+from slam6d.open3d_viewer import defer_plotly_viewer
 
 FloatArray = NDArray[np.float64]
 
@@ -96,7 +98,7 @@ class FeatureGuess:
 
 def _cloud(points: FloatArray, voxel: float, config: FeatureConfig) -> tuple[Any, Any]:
     """The cloud reduced to one real point per voxel, with normals and FPFH descriptors (open3d objects)."""
-    import open3d as o3d
+    import open3d as o3d  # loaded by feature_guess
 
     reduced = points[reduce_points(points, voxel)]
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(reduced))
@@ -111,6 +113,7 @@ def feature_guess(
     model_points: FloatArray, data_points: FloatArray, config: FeatureConfig | None = None
 ) -> FeatureGuess:
     """Global data->model transform from FPFH correspondences and RANSAC; independent of any start."""
+    defer_plotly_viewer()
     import open3d as o3d
 
     began = time.perf_counter()

@@ -49,7 +49,7 @@ from numpy.typing import NDArray
 from slam6d import nn
 from slam6d.attitude import ScanTilt, tilt_information, tilt_normal_equations
 from slam6d.errors import RegistrationError
-from slam6d.geometry import make_pose, rotation_angle, so3_exp, transform_points
+from slam6d.geometry import cross_rows, make_pose, rotation_angle, so3_exp, transform_points
 from slam6d.model import NORMAL_NEIGHBOURS, NORMAL_VOXEL_SIZE, ModelIndex
 from slam6d.octree import reduce_points
 
@@ -267,7 +267,7 @@ def point_to_plane_step(
     q = model - centre
     residual = np.einsum("ij,ij->i", p - q, normals)
     jac = np.empty((len(p), 6))
-    jac[:, :3] = np.cross(p, normals)
+    cross_rows(p, normals, out=jac[:, :3])
     jac[:, 3:] = normals
     a = jac.T @ jac
     b = -(jac.T @ residual)

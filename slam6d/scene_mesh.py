@@ -12,11 +12,14 @@ from dataclasses import dataclass, field
 from functools import cache
 
 import numpy as np
-import open3d as o3d
 from numpy.typing import NDArray
 
 from slam6d.geometry import rot_z
+from slam6d.open3d_viewer import defer_plotly_viewer
 from slam6d.routes import Route, Terrain
+
+defer_plotly_viewer()  # the ray caster draws nothing: open3d without dash, half its import
+import open3d as o3d  # noqa: E402
 
 _BOX_FACES = np.array(
     [[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],

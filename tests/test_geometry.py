@@ -128,3 +128,16 @@ def test_rotation_angle_ignores_the_rounding_of_rotations_read_from_text() -> No
     assert np.degrees(g.rotation_angle(rotation.T @ rounded)) < 1e-4
     small = g.so3_exp(np.array([0.0, 0.0, np.radians(0.01)]))
     assert abs(np.degrees(g.rotation_angle(rotation.T @ np.round(rotation @ small, 7))) - 0.01) < 1e-4
+
+
+@given(st.integers(0, 10_000), st.integers(1, 500))
+@settings(max_examples=30, deadline=None)
+def test_cross_rows_is_numpys_cross_to_the_bit(seed: int, rows: int) -> None:
+    """ICP's Jacobian is built with it: swapping it for np.cross must not move a pose by one ulp."""
+    rng = np.random.default_rng(seed)
+    a, b = rng.normal(size=(rows, 3)) * 100, rng.normal(size=(rows, 3))
+    expected = np.cross(a, b)
+    assert np.array_equal(g.cross_rows(a, b), expected)
+    jacobian = np.full((rows, 6), np.nan)
+    assert g.cross_rows(a, b, out=jacobian[:, :3]) is not None
+    assert np.array_equal(jacobian[:, :3], expected) and np.isnan(jacobian[:, 3:]).all()

@@ -147,6 +147,15 @@ def test_frames_round_trip_and_layout(tmp_path: Path) -> None:
     _assert_same_poses([final_frame_pose(path)], [POSES[2]], 1e-6, 1e-8)
 
 
+def test_frames_lines_keep_nine_significant_digits(tmp_path: Path) -> None:
+    """3DTK's layout to the character: 16 column-major numbers with 9 significant digits, the flag."""
+    pose = np.eye(4)
+    pose[:3, 3] = [1 / 3, -1234567.891, 2.5e-12]
+    path = tmp_path / "scan000.frames"
+    write_frames(path, [(pose, FrameType.LUM)])
+    assert path.read_text() == "1 0 0 0 0 1 0 0 0 0 1 0 0.333333333 -1234567.89 2.5e-12 1 3\n"
+
+
 def test_sequence_frames_are_written_in_the_native_frame(tmp_path: Path) -> None:
     histories = [[(POSES[0], FrameType.ICP), (POSES[1], FrameType.LUM)], [(POSES[2], FrameType.ICP_INACTIVE)]]
     paths = write_sequence_frames(tmp_path, histories, UOS)
