@@ -328,11 +328,12 @@ def _joint_step(
     Each scan is queried once, by the thinned points of all its graph neighbours at once; the
     joint system is solved by :class:`slam6d.block_system.BlockSystem`. Each pair's residuals count
     with its budget weight. Damping of only the directions a scan's pairs leave (nearly)
-    unconstrained keeps them (a scan seeing one flat wall) from running away (:func:`_damped`). ``patterns`` keeps the block systems of earlier
-    rounds by their held scans (the edges are the batches' own, fixed for the relaxation): working
-    a pattern out (its ordering and symbolic factor) cost more than the factorisations themselves
-    (2.7 of 4.3 s of linear algebra over 6 rounds on 250 campus scans). ``tilt``: the measured
-    up of each scan as a unary prior on its roll and pitch (:func:`_add_tilt_prior`).
+    unconstrained keeps them (a scan seeing one flat wall) from running away (:func:`_damped`).
+    ``patterns`` keeps the block systems of earlier rounds by their held scans (the edges are the
+    batches' own, fixed for the relaxation): working a pattern out (its ordering and symbolic
+    factor) cost more than the factorisations themselves (2.7 of 4.3 s of linear algebra over 6
+    rounds on 250 campus scans). ``tilt``: the measured up of each scan as a unary prior on its
+    roll and pitch (:func:`_add_tilt_prior`).
     """
     count = len(current)
     if scheduler is None:
