@@ -19,6 +19,7 @@ from slam6d import pipeline
 from slam6d.engine_settings import pipeline_config
 from slam6d.errors import Slam6dError
 from slam6d.scan import Scan, ScanSequence
+from slam6d.session_relaxation import registration_readings
 from slam6d.trace import to_jsonable
 
 
@@ -55,7 +56,9 @@ def registration_job(workbench: Workbench, session_id: str, author: str, paramet
     def work(progress: Progress, cancel: Cancel) -> dict[str, Any]:
         sequence = working_copy(state.sequence(lambda d, t: progress("reading scans", d, t)))
         base = state.session.revision  # the revision the run starts from (the scans follow the head)
-        runner = pipeline.Pipeline(sequence, config, scheduler=workbench.scheduler())
+        measured = [s.has_pose for s in sequence.scans]
+        readings = registration_readings(state.session, config, measured)  # revision 0's, not the head's
+        runner = pipeline.Pipeline(sequence, config, scheduler=workbench.scheduler(), readings=readings)
         recorder = TraceRecorder()
         run = RunCommit(workbench, session_id, author, runner, recorder, {"config": to_jsonable(config)}, base)
         try:

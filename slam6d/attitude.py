@@ -72,6 +72,7 @@ __all__ = [
     "PLANES_TILT_DEG",
     "RINGS_TILT_DEG",
     "UP",
+    "Readings",
     "ScanTilt",
     "TiltPrior",
     "declared_tilt_noise",
@@ -93,6 +94,16 @@ def tilt_error_deg(pose: Matrix, up: FloatArray) -> float:
     """Angle between the up that ``pose`` implies and the measured ``up``, degrees."""
     cosine = float(np.clip(measured_up(pose) @ (up / np.linalg.norm(up)), -1.0, 1.0))
     return math.degrees(math.acos(cosine))
+
+
+@dataclass(frozen=True)
+class Readings:
+    """An inclinometer's readings as the odometry poses that carry them (canonical
+    ``world_from_scan``; only their roll and pitch are read) and, per scan, whether it has one (a
+    scan whose file carried no pose has none)."""
+
+    poses: list[Matrix]
+    measured: list[bool]
 
 
 @dataclass(frozen=True)

@@ -583,45 +583,74 @@ def relax(
     out: Annotated[Path | None, typer.Option("--out", "-o", help="Write the relaxed poses as KITTI lines.")] = None,
     commit: Annotated[bool, typer.Option(help="Store the relaxed poses as a new revision of the session.")] = False,
     author: Annotated[str, typer.Option(help="Who the journal names for --commit.")] = "slam6d relax",
+    tilt_noise_deg: Annotated[
+        float | None,
+        typer.Option(
+            help="The odometry's roll and pitch (revision 0) are an inclinometer's readings with this noise"
+            " (degrees): a prior on every scan's tilt in lum and graph, as in slam6d run's relaxation. Default:"
+            " the session's [engine] tilt_noise_deg (written for a folder that declares one), else none; 0 = off."
+        ),
+    ] = None,
 ) -> None:
     """Relax a session's current revision with its [engine] settings: the workbench's Relax, from the shell."""
     from slam6d.engine_settings import pipeline_config
     from slam6d.io.poses import write_kitti_poses
     from slam6d.numba_blas import load_blas_bindings
-    from slam6d.relaxation_methods import reduced_models, relax_poses
+    from slam6d.relaxation_methods import reduced_models
     from slam6d.residuals import displacements
     from slam6d.session import Session
-    from slam6d.session_graph import graph_edges, sequential_links
+    from slam6d.session_relaxation import relax_revision, revision_tilt_prior, session_readings
 
+    if tilt_noise_deg is not None and not (tilt_noise_deg >= 0 and math.isfinite(tilt_noise_deg)):
+        raise typer.BadParameter(
+            f"must be a number of degrees >= 0, got {tilt_noise_deg}", param_hint="--tilt-noise-deg"
+        )
+    if tilt_noise_deg and method == "simultaneous":
+        raise typer.BadParameter(
+            "relaxation 'simultaneous' has no tilt prior; the inclinometer's readings need lum or graph",
+            param_hint="--tilt-noise-deg",
+        )
     load_blas_bindings()  # before numba's first call: 0.15 s of scipy.linalg it never uses
     session = Session.open(session_dir)
-    config = pipeline_config(session.config.engine)
+    stated = {} if tilt_noise_deg is None else {"tilt_noise_deg": tilt_noise_deg or None}  # 0: no readings
+    config = pipeline_config(session.config.engine, stated)
     with progress_bar("reading scans") as update:
         sequence = session.load_sequence(update)
     revision = session.get_revision()
     models = reduced_models([s.points for s in sequence.scans], config.voxel_size, config.icp)
-    edges = graph_edges(len(revision.poses), revision.graph)
+    tilt = revision_tilt_prior(
+        config, method, lambda: session_readings(session, [s.has_pose for s in sequence.scans]), models
+    )
     held = fixed or [0]
     with progress_bar(f"relaxing ({method})") as update:
-        result = relax_poses(
+        result = relax_revision(
             method,
             models,
-            revision.poses,
-            edges,
+            revision,
             held,
-            config.relax,
+            config,
+            tilt,
             progress=lambda done, _residual, _moved: update(done, config.relax.max_rounds),
-            links=sequential_links(len(revision.poses), revision.graph),
         )
     typer.echo(
         f"{method}: {result.iterations} round(s), point-to-plane RMS {100 * result.residual_before:.2f} -> "
         f"{100 * result.residual_after:.2f} cm; largest move {max(displacements(revision.poses, result.poses)):.3f} m"
     )
+    if tilt is not None:
+        typer.echo(
+            f"tilt held to the odometry's inclinometer ({tilt.noise_deg:g}° noise"
+            f"{', as the session declares' if tilt_noise_deg is None else ''}); --tilt-noise-deg 0 turns it off"
+        )
     if out is not None:
         write_kitti_poses(out, result.poses)
         typer.echo(f"wrote {out} (canonical frame)")
     if commit:
-        parameters = {"method": method, "fixed": held, "rounds": result.iterations}
+        parameters = {
+            "method": method,
+            "fixed": held,
+            "rounds": result.iterations,
+            "tilt_noise_deg": None if tilt is None else tilt.noise_deg,
+        }
         # onto the head as it is now: a workbench editing this session meanwhile keeps its other edits
         number = session.journal.commit(result.poses, author, f"relax_{method}", parameters, base=revision.number)
         typer.echo(f"stored as revision {number}")

@@ -105,7 +105,7 @@ class ScanSummary:
     # pair: slam6d.icp.translation_constraint) and that direction, a unit vector in the scan's own frame
     weakest_constraint: float = float("nan")
     weakest_direction: list[float] = field(default_factory=list)
-    held_translations: int = 0  # of them held where the prediction has them (PipelineConfig.hold_constraint)
+    held_translations: int = 0  # of them held where the motion puts them (PipelineConfig.hold_constraint)
     failure: str = ""  # why it was not registered
 
 

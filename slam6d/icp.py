@@ -15,10 +15,12 @@ in each direction, for telling a good fit from one whose many pairs leave a dire
 Along such a direction ICP's minimum is set by the normals' noise, not by the scene, and ICP drifts
 there (a corridor seen by a 16-beam lidar: 5-19 cm in height from the truth itself). With
 ``ICPConfig.hold_below`` the converged run checks its pairs; translations fixed less than that are
-put back where the caller's ``anchor`` has them (the start's position by default; given where the
-scan was before, a motion across the way from there is taken as none and one along it as predicted)
-and held there while ICP settles the rotation and the other translations again, with a fresh
-iteration budget.
+put back where the caller's :class:`MotionPrior` has them (the start's position without one: the
+odometry's prediction) and held there while ICP settles the rotation and the other translations
+again, with a fresh iteration budget. A prior knows where the scan was and where its motion model
+puts it; the motion the model puts into the held translations is kept when it stands out of the
+model's recent error (a car along a street its pairs barely fix goes on), else taken as that error
+and left out (the height of a hand-held scanner in a corridor stays), see :func:`_held_at`.
 
 Everything here works with ``transform`` = ``model_from_data``: ``model ≈ transform_points(T, data)``.
 :func:`icp_iterations` yields one :class:`ICPIteration` per step so the workbench can show each
@@ -77,8 +79,9 @@ class ICPConfig:
     BALM pair 1e-4 stops it 0.1° short, 1e-5 within 0.07° of the reference).
 
     ``hold_below`` > 0 (point-to-plane only): once converged, the translations the pairs fix less
-    than this (:func:`translation_constraint`) are held where the caller's ``anchor`` says and ICP
-    settles the rest again (see the module docstring); 0 lets ICP end wherever it drifted along them.
+    than this (:func:`translation_constraint`) are held where the caller's :class:`MotionPrior` says
+    and ICP settles the rest again (see the module docstring); 0 lets ICP end wherever it drifted
+    along them.
 
     ``facing_pairs`` (point-to-plane only): the data are a scan in its scanner's own frame (the
     scanner at the origin), so each step tells the model where the data scanner stands and the model
@@ -150,7 +153,10 @@ class ICPIteration:
     step_translation: float = 0.0  # |t(Δ)| of this step's update, metres
     step_rotation: float = 0.0  # angle(R(Δ)) of this step's update, radians
     converged: bool = False  # True on the step that met the convergence rule of the last stage
-    held: int = 0  # translations held at the anchor (ICPConfig.hold_below), 0 = none
+    held: int = 0  # translations held (ICPConfig.hold_below), 0 = none
+    # the converged fit's barely fixed translations carry motion the prior predicts beyond its misses
+    # (MotionPrior.moves_along): its position along the way rests on a few pairs
+    weak_along_motion: bool = False
 
 
 @dataclass
@@ -334,6 +340,46 @@ def translation_constraint(data: FloatArray, normals: FloatArray) -> Translation
 # ---------------------------------------------------------------- ICP
 
 
+@dataclass(frozen=True)
+class MotionPrior:
+    """What a scan's motion model says about where it is, for the translations ICP holds because its
+    pairs barely fix them (``ICPConfig.hold_below``; :func:`_held_at` decides between the two).
+
+    ``previous``: where the data scanner was before this motion; ``predicted``: where the motion
+    model puts it now (both in the model frame, metres); ``error``: how far the same model's
+    predictions of the last steps were off (metres), None when it has predicted nothing yet.
+    Sequential registration without odometry passes the previous scan's position, the
+    constant-velocity prediction and its recent misses (``slam6d.pipeline.Pipeline._motion_prior``).
+    """
+
+    previous: FloatArray
+    predicted: FloatArray
+    error: float | None = None
+
+    def __post_init__(self) -> None:
+        for name in ("previous", "predicted"):
+            value = np.asarray(getattr(self, name), dtype=np.float64).reshape(-1)
+            if value.shape != (3,) or not np.all(np.isfinite(value)):
+                raise ValueError(f"MotionPrior.{name} must be a finite 3-vector (metres), got {value}")
+            object.__setattr__(self, name, value)
+        if self.error is not None and not (self.error >= 0 and math.isfinite(self.error)):
+            raise ValueError(f"MotionPrior.error must be a finite distance >= 0 (metres) or None, got {self.error}")
+
+    @property
+    def miss(self) -> float:
+        """How far the prediction may be off: ``error``, or without one the share of the predicted
+        step more than 45° away from a direction (cos 45° x its length)."""
+        if self.error is not None:
+            return self.error
+        return math.cos(math.radians(45.0)) * float(np.linalg.norm(self.predicted - self.previous))
+
+    def moves_along(self, directions: FloatArray) -> bool:
+        """Whether the predicted motion within the span of ``directions`` (orthonormal columns) stands
+        out of :attr:`miss`: real motion there, not the model's miss. The length of a projection onto
+        a span is the same whatever orthonormal basis of it is given."""
+        return float(np.linalg.norm(directions.T @ (self.predicted - self.previous))) > self.miss
+
+
 def _pairs(
     model: ModelIndex,
     moved: FloatArray,
@@ -358,7 +404,7 @@ def icp_iterations(
     data: FloatArray,
     initial: FloatArray = np.eye(4),
     config: ICPConfig = ICPConfig(),
-    anchor: FloatArray | None = None,
+    prior: MotionPrior | None = None,
     tilt: ScanTilt | None = None,
 ) -> Iterator[ICPIteration]:
     """Run ICP one step at a time (see the module docstring for the convergence rule).
@@ -366,13 +412,13 @@ def icp_iterations(
     ``tilt``: the data scan's measured up (an inclinometer; :class:`slam6d.attitude.ScanTilt`), a
     prior on its roll and pitch in every point-to-plane step (point-to-point ignores it).
 
-    ``anchor``: where (model frame) the data scan's origin was before it moved to the start; a
-    translation that ``config.hold_below`` holds keeps the anchor's position across the way from it to
-    the start and the start's along it (see :func:`_held_at`); None keeps the start's. Raises :class:`RegistrationError` when a step
-    finds fewer than ``config.min_pairs`` pairs.
+    ``prior``: where the data scan's origin was and where its motion model puts it (model frame); the
+    translations ``config.hold_below`` holds stay where :func:`_held_at` says from it. None keeps the
+    start's position along them. Raises :class:`RegistrationError` when a step finds fewer than
+    ``config.min_pairs`` pairs.
     """
     data = _prepare_data(data, config)
-    return _iterate(_as_model(model, config), data, _as_transform(initial), config, anchor, tilt)
+    return _iterate(_as_model(model, config), data, _as_transform(initial), config, prior, tilt)
 
 
 def _prepare_data(data: FloatArray, config: ICPConfig) -> FloatArray:
@@ -401,15 +447,38 @@ def _settled(steps: list[FloatArray], tolerance: float) -> bool:
     return False
 
 
-def _held_at(held: FloatArray, start: FloatArray, last: FloatArray) -> FloatArray:
-    """Where the data scan's origin stays along each held translation (unit columns of ``held``): the
-    start's position along the way from ``last`` (where it was) to ``start`` (where it is predicted),
-    a motion that goes on, and ``last``'s across it, where a hand's sway or a body's wobble comes and
-    goes (a corridor's height). Within 45° of the way counts as along it."""
-    way = start - last
-    length = float(np.linalg.norm(way))
-    along = np.abs(held.T @ way) > np.cos(np.radians(45.0)) * length if length > 0 else np.zeros(held.shape[1], bool)
-    return np.where(along, held.T @ start, held.T @ last)
+def _held_at(held: FloatArray, prior: MotionPrior, fitted: FloatArray) -> FloatArray | None:
+    """Where the data scan's origin stays along the translations its pairs barely fix (the unit
+    columns of ``held``, an orthonormal basis of them), given the ``prior`` and where ICP converged
+    (``fitted``); None where the fit stays as it is.
+
+    * The motion the prior predicts within them does not stand out of its model's recent misses
+      (:meth:`MotionPrior.moves_along`): that motion is the model's miss, not the platform's (a hand's
+      last step repeated from a frame tilted by its wobble puts 5-40 cm into a corridor's height,
+      where the hand moved a few centimetres), and the fit there follows the normals' noise (a
+      corridor's height: 5-19 cm from the truth itself). The previous position is kept.
+    * It stands out, and the fit is within those misses of the prediction there: the motion is real
+      and the pairs, few as they are, measured it as well as the prediction could (a car's 2 m step
+      on open ground whose horizontal translations rest on 2 % of the pairs each, the prediction 8 cm
+      off as the car speeds up, ICP from the truth 1.4 cm). The fit stays; such a fit says so
+      (``ICPIteration.weak_along_motion``), and sequential registration tries it again coarse to
+      fine, since its heading rests on the same few pairs.
+    * It stands out and the fit left the prediction by more: the pairs let the scan slide (a
+      featureless tunnel) or stick to where the scanner was (the same car's next scan, in a run
+      without that retry: 1.3 m back towards it). The prediction is kept.
+
+    Why the span and not each direction: within a span of two or more barely fixed translations the
+    eigenvectors that make up ``held`` are any rotation of each other, so a rule deciding per
+    direction depends on that chance basis (the rule before this one took a direction more than 45°
+    from the step as across it and kept the previous position there: the car's 2 m step, 72° from
+    one of them, lost its 0.6 m share; docs/robustness.md). The lengths compared here are of
+    projections onto the span, and the position kept (``held @`` the value returned) is the previous
+    or predicted one projected onto it: the same whatever the basis."""
+    if not prior.moves_along(held):
+        return held.T @ prior.previous
+    if float(np.linalg.norm(held.T @ (np.asarray(fitted, dtype=np.float64) - prior.predicted))) <= prior.miss:
+        return None
+    return held.T @ prior.predicted
 
 
 def _iterate(
@@ -417,17 +486,17 @@ def _iterate(
     data: FloatArray,
     transform: FloatArray,
     config: ICPConfig,
-    anchor: FloatArray | None = None,
+    prior: MotionPrior | None = None,
     tilt: ScanTilt | None = None,
 ) -> Iterator[ICPIteration]:
     point_to_plane = config.method == "point_to_plane"
     start = transform[:3, 3].copy()
-    last = start if anchor is None else np.asarray(anchor, dtype=np.float64).reshape(3)
     stages = config.stages()
     stage = 0
     steps: list[FloatArray] = []  # updates of the current stage, newest last
-    held: FloatArray | None = None  # translations held at `keep` (unit columns), once checked
+    held: FloatArray | None = None  # translations held (unit columns), once checked
     budget = config.max_iterations  # iterations left; holding translations starts a new count
+    weak_along_motion = False  # see ICPIteration
     index = 0
     while budget > 0:
         budget -= 1
@@ -457,13 +526,17 @@ def _iterate(
         stage_done = _settled(steps, tolerance)
         finished = stage_done and last_stage
         if finished and held is None and config.hold_below > 0 and normals is not None:
-            # converged: which translations do the pairs barely fix? Those go back to the anchor and
-            # stay there while ICP settles the rest (see the module docstring)
+            # converged: which translations do the pairs barely fix? Those go back to where the prior
+            # (else the start) has them and stay there while ICP settles the rest (see the module docstring)
             constraint = translation_constraint(transform_points(step, moved[data_idx]), normals)
-            weak = constraint.values < config.hold_below
-            if weak.any():
-                held = constraint.directions[:, weak]
-                transform[:3, 3] -= held @ (held.T @ transform[:3, 3] - _held_at(held, start, last))
+            weak = constraint.directions[:, constraint.values < config.hold_below]
+            weak_along_motion = weak.size > 0 and prior is not None and prior.moves_along(weak)
+            keep: FloatArray | None = None
+            if weak.size:
+                keep = weak.T @ start if prior is None else _held_at(weak, prior, transform[:3, 3])
+            if keep is not None:
+                held = weak
+                transform[:3, 3] -= held @ (held.T @ transform[:3, 3] - keep)
                 steps, budget, finished = [], config.max_iterations, False
         yield ICPIteration(
             index=index,
@@ -475,6 +548,7 @@ def _iterate(
             step_rotation=step_r,
             converged=finished,
             held=0 if held is None else held.shape[1],
+            weak_along_motion=weak_along_motion,
         )
         index += 1
         if finished:

@@ -42,7 +42,7 @@ from typing import Any
 
 import numpy as np
 
-from slam6d.attitude import PLANES_TILT_DEG, RINGS_TILT_DEG, TiltPrior, heading_only
+from slam6d.attitude import PLANES_TILT_DEG, RINGS_TILT_DEG, Readings, TiltPrior, heading_only
 from slam6d.errors import DisconnectedGraphError, RegistrationError, RelaxationError, Slam6dError
 from slam6d.events import (
     Event,
@@ -61,7 +61,7 @@ from slam6d.events import (
 from slam6d.features import feature_guess
 from slam6d.geometry import Matrix, invert, rotation_angle, transform_points
 from slam6d.graph_relaxation import GraphEdge, trajectory_graph
-from slam6d.icp import ICPConfig, ICPIteration, ICPResult, icp_iterations, translation_constraint
+from slam6d.icp import ICPConfig, ICPIteration, ICPResult, MotionPrior, icp_iterations, translation_constraint
 from slam6d.initial_guess import GuessResult, OctreeSearchConfig, extrapolate_odometry, octree_guess
 from slam6d.io.frames import FrameType, write_sequence_frames
 from slam6d.loops import (
@@ -94,6 +94,7 @@ FUSE_BELOW_CUBE_SHARE = 0.2  # ModelIndex.smallest_cube_share: VLP-16 outdoors 0
 WORKER_THREADS = min(2, os.cpu_count() or 1)
 PREPARE_AHEAD = 3
 FITNESS_HISTORY = 5  # registered scans whose median fitness sets the sequence's own bar
+PREDICTION_HISTORY = 3  # registered steps whose worst constant-velocity miss says how far to trust it
 # Without odometry, a fit pairing under this share of the recent median gets a second, coarse-to-fine
 # ICP from the prediction (simulated OS1-64 car: right fits 0.53-0.56, wrong ones 0.32-0.34, i.e.
 # 0.63 of the median, above the bar; correct campus VLP-16 fits pair 0.68-1.2 of theirs, so a right
@@ -166,8 +167,10 @@ class PipelineConfig:
     kept 2.9 m and 153° off an odometry 6 cm and 1.3° off). ``math.inf`` trusts the searches always.
     ``hold_constraint``: a sequential fit's translations that its pairs fix less than this share
     (:func:`slam6d.icp.translation_constraint`) are held (``ICPConfig.hold_below``): at the odometry's
-    prediction when there is one, else at the previous scan's position across the predicted way and
-    at the prediction along it; 0 turns it off. The case: a corridor seen by a VLP-16 or OS1-64 held
+    prediction when there is one, else at the previous scan's position where the motion the
+    constant-velocity prediction puts into them is within its recent misses (a hand's sway), and at
+    the prediction or the fit where it stands out of them (a car's step; :meth:`Pipeline._motion_prior`,
+    :func:`slam6d.icp._held_at`); 0 turns it off. The case: a corridor seen by a VLP-16 or OS1-64 held
     at 1.4 m, whose floor and ceiling lie beyond the beams but for ~1 % of the points. ICP's height
     there follows the normals' noise (from the truth it drifts 5-19 cm) and ended 18-54 cm off from
     the constant-velocity prediction, whose own height is 14-39 cm off (the last step repeated from a
@@ -272,11 +275,14 @@ class Pipeline:
         config: PipelineConfig = PipelineConfig(),
         store: ScanStore | None = None,
         scheduler: Scheduler | None = None,
+        readings: Readings | None = None,
     ) -> None:
         """``store``: the scans' points on disk (:mod:`slam6d.scan_store`), read once for the reduction
         instead of from ``sequence``, whose scans then need only their poses and names.
         ``scheduler`` (:mod:`slam6d.scheduler`): where the reduction and LUM's per-scan blocks run
-        (a Dask cluster's workers read a store themselves); None keeps everything in this process."""
+        (a Dask cluster's workers read a store themselves); None keeps everything in this process.
+        ``readings``: the inclinometer's readings where they are not the scans' own poses (a session
+        registered again from a later revision: :func:`slam6d.session_relaxation.registration_readings`)."""
         if len(sequence) == 0:
             raise Slam6dError("the sequence has no scans")
         self.sequence = sequence
@@ -285,11 +291,11 @@ class Pipeline:
         self.has_odometry = [bool(scan.has_pose) for scan in sequence]
         self.poses: list[Matrix] = [p.copy() for p in self.odometry]
         # the odometry's roll and pitch as an inclinometer's readings, where the session has one
-        self.tilt: TiltPrior | None = None
-        if config.tilt_noise_deg is not None and any(self.has_odometry):
-            self.tilt = TiltPrior.from_poses(
-                self.odometry, self.has_odometry, config.tilt_noise_deg, config.registration_tilt_deg
-            )  # each scan's entry is set when registration chooses its model (_model)
+        # (each scan's weight is set when registration chooses its model: _model)
+        held = readings or Readings(self.odometry, self.has_odometry)
+        if len(held.poses) != len(sequence) or len(held.measured) != len(sequence):
+            raise Slam6dError(f"readings for {len(held.poses)} scans, the sequence has {len(sequence)}")
+        self.tilt = inclinometer_prior(config, held.poses, held.measured)
         self.history: list[list[tuple[Matrix, int]]] = [[(p.copy(), FrameType.ICP_INACTIVE)] for p in self.poses]
         self.registered = 1  # scan 0 anchors the map
         self.done = False
@@ -440,20 +446,7 @@ class Pipeline:
                 self._preparing[index] = self._worker.submit(self._prepare, index)
 
     def _prepare(self, index: int) -> tuple[ModelIndex, np.ndarray]:
-        shared = self.models.index(index)
-        cell = self.config.normal_cell_voxels * self.config.voxel_size
-        model = shared
-        if cell > 0 and len(shared.plane_indices) == len(shared.points):
-            model = ModelIndex(
-                shared.points,
-                normal_neighbours=shared.normal_neighbours,
-                normal_voxel_size=self.config.sample_voxels * self.config.voxel_size,
-                backend=shared.backend,
-                threads=shared.threads,
-                normal_cell=cell,
-                index=shared.index,
-                viewpoint=np.zeros(3),  # reduced scans stay in their own frame: the scanner at the origin
-            )
+        model = registration_model(self.models.index(index), self.config)
         # every normal now (per cube, k-NN where a cube gives none), so that ICP on the main thread
         # never waits for one: estimating them there, on demand, was a fifth of the registration time
         model.plane_normals()
@@ -548,10 +541,9 @@ class Pipeline:
         """Model for scan ``index``: (index, world_from_model, scans in it)."""
         if self.config.matching == "pairwise":
             return self.registration_model(index - 1), self.poses[index - 1], [index - 1]
-        fusing = self.config.fused_scans > 1 and index >= 2 and self._needs_fusing(index - 1)
+        fusing = fuses_scans(self.config, index, self._needs_fusing)
         if self.tilt is not None:  # what the fit's tilt is worth, for weighing the inclinometer against it
-            cfg = self.config
-            self.tilt.registered_with(index, cfg.fused_registration_tilt_deg if fusing else cfg.registration_tilt_deg)
+            self.tilt.registered_with(index, registration_tilt_deg(self.config, fusing))
         if fusing:
             fused = list(range(max(0, index - self.config.fused_scans), index))
             return self._fused_model(fused), self.poses[index - 1], fused
@@ -564,8 +556,7 @@ class Pipeline:
         a plane for fewer than ``FUSE_BELOW_CUBE_SHARE`` of its plane sample (a multi-beam lidar
         outdoors). Dense and close-range scans find their planes alone, and a fused model costs
         them time for nothing (BALM's hall: RPE 0.57 instead of 0.54 cm, registration ~3x)."""
-        share = self.registration_model(index).smallest_cube_share
-        return share is not None and share < FUSE_BELOW_CUBE_SHARE
+        return needs_fusing(self.registration_model(index))
 
     def _fused_model(self, members: list[int]) -> ModelIndex:
         """The metascan as one model (``fused_scans``): :func:`slam6d.model.fused_model` of the
@@ -655,12 +646,12 @@ class Pipeline:
         model_from_world = invert(world_from_model)
         iterations: list[ICPIteration] = []
         config = config or self._sequential_config
-        # what the scans barely fix keeps the odometry's prediction (the start); without odometry the
-        # previous scan's position: see PipelineConfig.hold_constraint
-        anchor = None if self._odometry_step(index) else (model_from_world @ self.poses[index - 1])[:3, 3]
+        # what the scans barely fix keeps the odometry's prediction (the start); without odometry see
+        # _motion_prior and PipelineConfig.hold_constraint
+        prior = None if self._odometry_step(index) else self._motion_prior(index, model_from_world)
         try:
             tilt = None if self.tilt is None else self.tilt.for_fit(index, world_from_model)
-            for iteration in icp_iterations(model, data, model_from_world @ start_world, config, anchor, tilt):
+            for iteration in icp_iterations(model, data, model_from_world @ start_world, config, prior, tilt):
                 iterations.append(iteration)
                 pose = world_from_model @ iteration.transform
                 self._set_pose(index, pose, FrameType.ICP)
@@ -668,6 +659,24 @@ class Pipeline:
         except RegistrationError as exc:
             return exc
         return ICPResult.from_iterations(iterations, len(data), self._icp_config.method, world_from_model)
+
+    def _motion_prior(self, index: int, model_from_world: Matrix) -> MotionPrior:
+        """Where scan ``index`` was and where constant velocity puts it (in the model's frame), and how
+        far constant velocity missed the last ``PREDICTION_HISTORY`` registered steps (the largest
+        miss, None before any): what a sequential fit without odometry holds the translations its
+        pairs barely fix at (:func:`slam6d.icp._held_at`). Every try of the scan gets the same prior,
+        also one started from a search's winner: the prior is the motion model's, whatever the start."""
+        misses = []
+        for k in range(max(2, index - PREDICTION_HISTORY), index):
+            if not {k - 2, k - 1, k} & set(self.skipped):
+                before, last = self.poses[k - 2], self.poses[k - 1]
+                predicted = last @ invert(before) @ last
+                misses.append(float(np.linalg.norm(predicted[:3, 3] - self.poses[k][:3, 3])))
+        return MotionPrior(
+            (model_from_world @ self.poses[index - 1])[:3, 3],
+            (model_from_world @ self._start_pose(index))[:3, 3],
+            max(misses) if misses else None,
+        )
 
     def _search_first(self, index: int) -> bool:
         """Whether the octree search runs before the first ICP of scan ``index``: always with
@@ -729,11 +738,22 @@ class Pipeline:
             return False
         return outcome.fitness < RECHECK_SHARE * float(np.median(recent))
 
+    @staticmethod
+    def _weak_along_motion(outcome: Outcome) -> bool:
+        """Whether a fit's barely fixed translations carry the motion the prediction expects
+        (``ICPIteration.weak_along_motion``): its position along its way rests on a few pairs, and so
+        does its heading. The case: a car easing out of a turn on open ground (outdoor HDL-32E seed
+        2, 30 scans, scan 3), both horizontal translations on 2 % of the pairs, the prediction 3.9°
+        off in yaw from the repeated turn; ICP ended 3.8° off pairing 0.50, no fewer than the two fits
+        before it (0.50, 0.58), while the truth's fit pairs 0.73 and coarse to fine finds it."""
+        return not isinstance(outcome, RegistrationError) and outcome.iterations[-1].weak_along_motion
+
     def _register(self, index: int) -> Iterator[Event]:
         """ICP from the prediction (odometry, else constant velocity); when it fits poorly (or fails),
         ICP again from the octree winner and then from the feature guess, keeping the best fit.
-        Without odometry, a kept fit pairing under ``RECHECK_SHARE`` of the recent ones is tried once
-        more from the prediction, coarse to fine."""
+        Without odometry, a kept fit pairing under ``RECHECK_SHARE`` of the recent ones, or one whose
+        barely fixed translations carry the predicted motion, is tried once more from the prediction,
+        coarse to fine."""
         began = time.perf_counter()
         cfg = self.config
         start = predicted = self._start_pose(index)
@@ -761,12 +781,15 @@ class Pipeline:
             tries.append(("features", third))
             if self._near_odometry(index, predicted, third):
                 outcome = self._better_fit(outcome, third)
-        if not self.has_odometry[index] and self._pairs_clearly_fewer(index, outcome):
+        if not self.has_odometry[index] and (
+            self._pairs_clearly_fewer(index, outcome) or self._weak_along_motion(outcome)
+        ):
             # Without odometry the prediction repeats the last motion; where that changed (a car
             # easing out of a turn: 4° of yaw), ICP at the sequential max distance alone can settle
-            # a few degrees off in a wrong basin that still pairs more than the bar asks. ICP again
-            # from the prediction, coarse to fine, and keep the better fit. Not the first try: on
-            # the hand-held indoor walks a 1 m first stage pairs the wrong walls of a room.
+            # a few degrees off in a wrong basin that still pairs more than the bar asks, or than the
+            # few previous fits did. ICP again from the prediction, coarse to fine, and keep the
+            # better fit. Not the first try: on the hand-held indoor walks a 1 m first stage pairs
+            # the wrong walls of a room.
             yield ScanStarted(index, predicted.copy(), None, members, "coarse")
             coarse = yield from self._run_icp(index, model, world_from_model, predicted, self._predicted_config)
             tries.append(("coarse", coarse))
@@ -1032,6 +1055,56 @@ class Pipeline:
             failure=self.failure,
             components=[list(c) for c in self.components],
         )
+
+
+def inclinometer_prior(config: PipelineConfig, odometry: list[Matrix], has_odometry: list[bool]) -> TiltPrior | None:
+    """The odometry's roll and pitch as an inclinometer's readings (:class:`slam6d.attitude.TiltPrior`)
+    where ``config.tilt_noise_deg`` says the odometry carries one and some scan has odometry; None
+    otherwise. Every scan is weighed as one finding its planes alone until
+    :func:`registration_tilt_deg` says how it was registered."""
+    if config.tilt_noise_deg is None or not any(has_odometry):
+        return None
+    return TiltPrior.from_poses(odometry, has_odometry, config.tilt_noise_deg, config.registration_tilt_deg)
+
+
+def registration_model(shared: ModelIndex, config: PipelineConfig) -> ModelIndex:
+    """A scan's sequential-matching model over its reduced points' ``shared`` model (same kd-tree):
+    per-cube normals over cubes of ``normal_cell_voxels`` x ``voxel_size`` and a plane sample of one
+    point per ``sample_voxels`` x ``voxel_size`` cube, where those are set; ``shared`` itself otherwise."""
+    cell = config.normal_cell_voxels * config.voxel_size
+    if cell <= 0 or len(shared.plane_indices) != len(shared.points):
+        return shared
+    return ModelIndex(
+        shared.points,
+        normal_neighbours=shared.normal_neighbours,
+        normal_voxel_size=config.sample_voxels * config.voxel_size,
+        backend=shared.backend,
+        threads=shared.threads,
+        normal_cell=cell,
+        index=shared.index,
+        viewpoint=np.zeros(3),  # reduced scans stay in their own frame: the scanner at the origin
+    )
+
+
+def needs_fusing(model: ModelIndex) -> bool:
+    """Whether a scan whose registration model is ``model`` leaves its planes to the scans' rings:
+    its smallest cubes hold a plane for fewer than ``FUSE_BELOW_CUBE_SHARE`` of its plane sample (a
+    multi-beam lidar outdoors)."""
+    share = model.smallest_cube_share
+    return share is not None and share < FUSE_BELOW_CUBE_SHARE
+
+
+def fuses_scans(config: PipelineConfig, index: int, needs: Callable[[int], bool]) -> bool:
+    """Whether sequential matching registers scan ``index`` against the last ``fused_scans`` scans
+    fused into one model: metascan matching, and the scan before it leaves its planes to its rings
+    (``needs(index - 1)``, :func:`needs_fusing` of that scan's registration model)."""
+    return config.matching != "pairwise" and config.fused_scans > 1 and index >= 2 and needs(index - 1)
+
+
+def registration_tilt_deg(config: PipelineConfig, fused: bool) -> float:
+    """What the tilt of a scan's registration is worth per step (:mod:`slam6d.attitude`): matched
+    against fused scans or finding its planes alone."""
+    return config.fused_registration_tilt_deg if fused else config.registration_tilt_deg
 
 
 def reduce_scan(points: np.ndarray, voxel_size: float) -> np.ndarray:

@@ -11,7 +11,7 @@ import pytest
 
 from slam6d.errors import RegistrationError
 from slam6d.geometry import invert, make_pose, pose_difference, pose_from_xyzrpy, rot_z, transform_points
-from slam6d.icp import ICPConfig, correspondences, count_pairs, icp, icp_iterations
+from slam6d.icp import ICPConfig, ICPIteration, MotionPrior, correspondences, count_pairs, icp, icp_iterations
 from slam6d.model import ModelIndex, StackedModel, fused_model
 from slam6d.nn import build_index
 from slam6d.normals import estimate_normals
@@ -325,9 +325,10 @@ def _corridor(spacing: float = 0.05, end_wall: bool = True) -> np.ndarray:
 
 def test_icp_holds_a_translation_no_pair_fixes_at_the_anchor_and_settles_the_rest() -> None:
     """In a corridor without floor or ceiling the height is free: ICP's answer along it is whatever
-    its start and noise give. With ``hold_below`` it ends at the anchor's height (across the way from
-    the anchor to the start, so taken as unchanged), and the motion the walls do fix (sideways, along
-    to the end wall, the turn) converges as without it."""
+    its start and noise give. With ``hold_below`` it ends at the previous height: the prediction's
+    6 cm of height change is well within how far the hand's recent predictions missed (20 cm), so it
+    is taken as that miss. The motion the walls do fix (sideways, along to the end wall, the turn)
+    converges as without it."""
     from slam6d.icp import translation_constraint
 
     model = _corridor()
@@ -335,11 +336,12 @@ def test_icp_holds_a_translation_no_pair_fixes_at_the_anchor_and_settles_the_res
     data = transform_points(invert(truth), model)
     config = ICPConfig(max_distance=0.5, data_voxel_size=0.0, normal_voxel_size=0.0, hold_below=0.01)
     free = icp(model, data, np.eye(4), replace(config, hold_below=0.0))
-    anchor = np.array([0.0, -0.5, 0.06])  # where the scan was before: 0.5 m back, at the true height
-    iterations = list(icp_iterations(model, data, np.eye(4), config, anchor))
+    # where the scan was before: 0.5 m back, at the true height; predicted at the start (identity)
+    prior = MotionPrior(previous=np.array([0.0, -0.5, 0.06]), predicted=np.zeros(3), error=0.2)
+    iterations = list(icp_iterations(model, data, np.eye(4), config, prior))
     held = iterations[-1].transform
     assert iterations[-1].converged and iterations[-1].held == 1
-    assert abs(held[2, 3] - 0.06) < 1e-3  # at the anchor's height (the held direction is z to the normals' accuracy)
+    assert abs(held[2, 3] - 0.06) < 1e-3  # at the previous height (the held direction is z to the normals' accuracy)
     assert abs(free.transform[2, 3] - 0.06) > 0.01  # left alone, ICP ends where its pairs drift
     metres, radians = pose_difference(held, truth)
     assert metres < 1e-3 and np.degrees(radians) < 0.01  # the rest converged to the truth
@@ -349,21 +351,111 @@ def test_icp_holds_a_translation_no_pair_fixes_at_the_anchor_and_settles_the_res
         ICPConfig(hold_below=1.0)
 
 
-def test_icp_holds_a_free_translation_along_the_way_at_the_start() -> None:
-    """A tunnel: walls and a floor fix everything but the motion along it. Held there, the scan keeps
-    the start's (predicted) position, not the anchor's: a vehicle going along a tunnel goes on, where
-    the height of a hand-held scanner in a corridor (across its way) is taken as unchanged."""
+def test_icp_holds_a_free_translation_along_the_way_at_the_prediction() -> None:
+    """A tunnel: walls and a floor fix everything but the motion along it. A vehicle predicted 0.48 m
+    on (its recent predictions right to 5 cm), started where it was (as a search's winner may put
+    it), sees only the tunnel's middle: ICP alone moves it by the sample's pattern, not by the
+    motion (0.15 m, three sample spacings). The predicted step is real motion
+    (it stands out of the 5 cm), the fit left the prediction by more than that, so the scan is held
+    at the prediction along the tunnel; the rest is fitted."""
     model = _corridor(end_wall=False)
-    truth = make_pose(rot_z(np.radians(3.0)), [0.05, 0.4, 0.02])
+    truth = make_pose(rot_z(np.radians(3.0)), [0.05, 0.5, 0.02])
     data = transform_points(invert(truth), model)
+    data = data[np.abs(data[:, 1]) < 3.0]  # the tunnel's ends out of sight
     config = ICPConfig(max_distance=0.5, data_voxel_size=0.0, normal_voxel_size=0.0, hold_below=0.01)
-    start = make_pose(np.eye(3), [0.0, 0.5, 0.0])  # predicted 0.5 m along the tunnel from the anchor
-    iterations = list(icp_iterations(model, data, start, config, anchor=np.zeros(3)))
+    prior = MotionPrior(previous=np.zeros(3), predicted=np.array([0.0, 0.48, 0.0]), error=0.05)
+    free = list(icp_iterations(model, data, np.eye(4), replace(config, hold_below=0.0), prior))[-1].transform
+    assert abs(free[1, 3] - 0.48) > 0.2  # the fit alone stays near its start, slid by the sampling's pattern
+    iterations = list(icp_iterations(model, data, np.eye(4), config, prior))
     held = iterations[-1].transform
-    assert iterations[-1].converged and iterations[-1].held == 1
-    assert abs(held[1, 3] - 0.5) < 1e-3  # along the way: the start's
+    assert iterations[-1].converged and iterations[-1].held == 1 and iterations[-1].weak_along_motion
+    assert abs(held[1, 3] - 0.48) < 1e-3  # along the way: the prediction's
     assert abs(held[0, 3] - 0.05) < 1e-3 and abs(held[2, 3] - 0.02) < 1e-3  # the rest: the truth
     assert pose_difference(held, truth)[1] < np.radians(0.01)
+
+
+def _open_ground(facades: tuple[tuple[float, float], ...], facade_spacing: float) -> np.ndarray:
+    """Ground 1.9 m under a car's scanner, 40 m square sampled every 0.5 m, and 4 m high facades
+    (angle of the facade's normal from x in degrees, its distance in metres) seen along 6 m each:
+    the ground fixes the height, roll and pitch; the horizontal motion rests on the facades' points,
+    as many as ``facade_spacing`` gives."""
+    x, y = np.meshgrid(np.arange(-20, 20, 0.5), np.arange(-20, 20, 0.5))
+    parts = [np.c_[x.ravel(), y.ravel(), np.full(x.size, -1.9)]]
+    along, up = np.meshgrid(np.arange(-3, 3, facade_spacing), np.arange(-1.9, 2.1, facade_spacing))
+    for angle, distance in facades:
+        normal = np.array([np.cos(np.radians(angle)), np.sin(np.radians(angle)), 0.0])
+        side = np.array([-normal[1], normal[0], 0.0])
+        parts.append(distance * normal + np.outer(along.ravel(), side) + np.outer(up.ravel(), [0, 0, 1.0]))
+    return np.vstack(parts)
+
+
+def _held_fit(model: np.ndarray, truth: np.ndarray, start: np.ndarray, prior: MotionPrior) -> ICPIteration:
+    """The last iteration of ICP of the model seen from ``truth``, started at ``start`` (a position;
+    turned as the truth), holding under 2.5 % as sequential registration does."""
+    data = transform_points(invert(truth), model)
+    config = ICPConfig(max_distance=0.5, data_voxel_size=0.0, normal_voxel_size=0.0, hold_below=0.025)
+    last = list(icp_iterations(model, data, make_pose(truth[:3, :3], start), config, prior))[-1]
+    assert last.converged
+    return last
+
+
+def test_a_held_translation_oblique_to_the_step_keeps_the_motion_a_car_really_made() -> None:
+    """A car drives 2 m towards a facade at 72° from its face: the ground and the facade fix the
+    height and the motion towards it, nothing fixes the motion along it, which carries 2 m x cos 72° =
+    0.62 m of the step. That share is real: the car's last steps were predicted to 3 cm, and the fit
+    from the prediction agrees with it, so the fit stays. The rule before took a direction more than
+    45° from the step as across it and dropped the share (the outdoor HDL-32E walk lost 0.59 m of a
+    step so). A hand whose predictions missed by 1 m has the same predicted share taken as that miss:
+    held at the previous position."""
+    model = _open_ground(((0.0, 12.0),), facade_spacing=0.1)  # a facade at x = 12 m, its face along y
+    step = 2.0 * np.array([np.sin(np.radians(72.0)), np.cos(np.radians(72.0)), 0.0])
+    truth = make_pose(rot_z(np.radians(5.0)), [0.4, 0.3, 0.02])
+    previous = truth[:3, 3] - step
+    predicted = truth[:3, 3] + np.array([-0.02, 0.02, -0.01])  # constant velocity missed by 3 cm
+    fit = _held_fit(model, truth, predicted, MotionPrior(previous, predicted, error=0.03))
+    assert fit.weak_along_motion and fit.held == 0  # the fit agrees with the prediction: it stays
+    assert abs(fit.transform[1, 3] - truth[1, 3]) < 0.03  # along the facade: the 0.62 m share, kept
+    assert abs(fit.transform[0, 3] - truth[0, 3]) < 1e-3 and abs(fit.transform[2, 3] - truth[2, 3]) < 1e-3
+    assert pose_difference(fit.transform, truth)[1] < np.radians(0.01)
+    hand = _held_fit(model, truth, predicted, MotionPrior(previous, predicted, error=1.0))
+    assert hand.held == 1 and not hand.weak_along_motion
+    assert abs(hand.transform[1, 3] - previous[1]) < 1e-3  # within a 1 m miss: the previous position
+    assert abs(hand.transform[0, 3] - truth[0, 3]) < 1e-3
+
+
+def test_the_held_position_does_not_depend_on_the_basis_of_the_held_translations() -> None:
+    """Open ground with two far facades: both horizontal translations rest on about 1 % of the pairs
+    each. Their eigenvectors are any orthonormal basis of the horizontal plane (here about 40° from x);
+    a rule deciding direction by direction kept the step along one and dropped it along the other
+    depending on that basis (a step at 45° to both was dropped whole). On the ground the car's whole
+    2 m step goes on, and the position kept for any prior and fit is one point for every basis of
+    the span."""
+    from slam6d.icp import _held_at, translation_constraint
+
+    model = _open_ground(((0.0, 18.0), (90.0, 18.0)), facade_spacing=0.5)
+    normals = np.tile([0.0, 0.0, 1.0], (len(model), 1))
+    above = model[:, 2] > -1.8
+    normals[above & np.isclose(model[:, 0], 18.0)] = [1.0, 0.0, 0.0]
+    normals[above & np.isclose(model[:, 1], 18.0)] = [0.0, 1.0, 0.0]
+    assert np.all(translation_constraint(model, normals).values[:2] < 0.025)
+    step = 2.0 * np.array([np.cos(np.radians(40.0)), np.sin(np.radians(40.0)), 0.0])
+    truth = make_pose(rot_z(np.radians(-3.0)), [0.2, -0.1, 0.01])
+    previous = truth[:3, 3] - step
+    predicted = truth[:3, 3] + np.array([0.03, -0.02, 0.0])
+    for start in (predicted, previous):
+        fit = _held_fit(model, truth, start, MotionPrior(previous, predicted, error=0.05))
+        assert fit.weak_along_motion
+        assert np.linalg.norm(fit.transform[:3, 3] - truth[:3, 3]) < 0.04  # the whole step (before: 1.3 m short)
+    rng = np.random.default_rng(5)
+    for error in (None, 0.05, 0.3, 5.0):
+        prior = MotionPrior(previous, predicted + rng.normal(0, 0.1, 3), error)
+        for fitted in (predicted, previous, truth[:3, 3]):
+            kept = []
+            for turn in np.radians([0.0, 17.0, 45.0, 71.0, 90.0]):
+                basis = np.array([[np.cos(turn), -np.sin(turn)], [np.sin(turn), np.cos(turn)], [0.0, 0.0]])
+                values = _held_at(basis, prior, fitted)
+                kept.append(fitted if values is None else basis @ values + (fitted - basis @ (basis.T @ fitted)))
+            assert np.ptp(np.array(kept), axis=0).max() < 1e-12, (error, fitted)
 
 
 def _parapet_street(rng: np.random.Generator, scanner_x: float, face_x: float) -> np.ndarray:

@@ -231,6 +231,35 @@ def test_car_easing_out_of_a_turn_without_odometry_registers_from_the_repeated_t
     assert "coarse" in pipeline.summaries[3].starts_tried
 
 
+def test_car_on_open_ground_without_odometry_keeps_the_step_its_pairs_barely_fix(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    """The 30-scan outdoor HDL-32E car session without odometry, seed 2 (``benchmarks/robustness.py
+    --scans 30``), read back from the files, its first six scans: at scan 3 (a 1.98 m step as the car
+    eases out of a 13° turn) both horizontal translations rest on 2 % of the pairs and are held. The
+    rule deciding per direction kept the previous position along the one 72° from the way and lost
+    0.59 m of the step (58 cm / 1.4° off; 15 cm ATE over the 30 scans, 37 cm on an earlier code). The
+    predicted motion within them, 1.92 m, stands out of constant velocity's last miss (0.33 m): it is
+    real, and such a fit is redone coarse to fine from the prediction, since the repeated turn had
+    left it 3.8° off in yaw pairing as many as the two fits before it."""
+    from slam6d.geometry import UOS
+    from slam6d.io.poses import read_kitti_poses
+    from slam6d.io.registry import read_sequence
+    from slam6d.pipeline import Pipeline, PipelineConfig
+    from slam6d.simulate import SimulationConfig, simulate_session
+
+    config = SimulationConfig(seed=2, scans=30, sensor="hdl32", world="outdoor", odometry=False)
+    session = simulate_session(tmp_path, config)
+    truth = [UOS.pose_to_canonical(p) for p in read_kitti_poses(session.ground_truth_file)][:6]
+    pipeline = Pipeline(read_sequence(tmp_path, "uos", last=5), PipelineConfig(loops=False, relaxation="none"))
+    report = pipeline.run()
+    assert report.failure is None and report.skipped_scans == []
+    for k in range(1, len(truth)):
+        metres, radians = pose_difference(
+            invert(pipeline.poses[k - 1]) @ pipeline.poses[k], invert(truth[k - 1]) @ truth[k]
+        )
+        assert metres < 0.03 and math.degrees(radians) < 0.2, (k, metres, math.degrees(radians))
+    assert pipeline.summaries[3].starts_tried == ["start", "coarse"]
+
+
 @pytest.mark.slow  # two simulated walks and a run: ~15 s of CPU
 def test_indoor_walk_without_odometry_holds_the_height_its_corridor_fits_cannot_fix(tmp_path) -> None:  # type: ignore[no-untyped-def]
     """The matrix's indoor VLP-16 hand-held walk without odometry (seed 1), read back from the files:

@@ -17,12 +17,11 @@ import numpy as np
 from app.editing.context import EditContext
 from app.jobs import Cancel, Progress, Work
 from app.workbench import EditError
-from slam6d.errors import Cancelled
-from slam6d.loops import LoopHypothesis, diffuse_loop_correction, loop_correction
+from slam6d.loops import LoopHypothesis
 from slam6d.posegraph import check_connected
-from slam6d.relaxation_methods import RELAXATION_METHODS, relax_poses
+from slam6d.relaxation_methods import RELAXATION_METHODS
 from slam6d.residuals import displacements
-from slam6d.session_graph import graph_edges, sequential_links
+from slam6d.session_relaxation import close_revision_loops, relax_revision, revision_tilt_prior, session_readings
 
 
 class Relaxation:
@@ -40,15 +39,18 @@ class Relaxation:
 
         def work(progress: Progress, cancel: Cancel) -> dict[str, Any]:
             start = context.workbench.head(session_id)  # the revision this job works from
-            poses = list(start.poses)
-            before = [p.copy() for p in poses]
-            for n, edge in enumerate(loops):
-                if cancel():
-                    raise Cancelled("loop closing cancelled")
-                hyp = LoopHypothesis(edge["i"], edge["j"], 0.0, 0.0, transform=np.asarray(edge["transform"]))
-                poses = diffuse_loop_correction(poses, hyp.i, hyp.j, loop_correction(poses, hyp))
-                progress("closing loops", n + 1, len(loops))
-            params = {"loops": [[e["i"], e["j"]] for e in loops], "displacement": displacements(before, poses)}
+            before = list(start.poses)
+            scans = context.workbench.state(session_id).sequence().scans
+            keep_tilt = context.config(session_id).tilt_noise_deg is not None and any(s.has_pose for s in scans)
+            hypotheses = [LoopHypothesis(e["i"], e["j"], 0.0, 0.0, transform=np.asarray(e["transform"])) for e in loops]
+            poses = close_revision_loops(
+                before, hypotheses, keep_tilt, cancel, lambda done, total: progress("closing loops", done, total)
+            )
+            params = {
+                "loops": [[e["i"], e["j"]] for e in loops],
+                "tilt_kept": keep_tilt,
+                "displacement": displacements(before, poses),
+            }
             return context.commit_checked(session_id, poses, author, "close_loops", params, base=start.number)
 
         return work
@@ -65,27 +67,36 @@ class Relaxation:
             check_connected(count, [(e["i"], e["j"]) for e in self.context.edges(session_id)], fixed)
 
     def relax_job(self, session_id: str, author: str, method: str = "lum", fixed: Sequence[int] = (0,)) -> Work:
-        """The engine's relaxation by name (:func:`slam6d.relaxation_methods.relax_poses`) with the session's
-        settings, as ``slam6d relax SESSION --method METHOD`` runs it; ``graph`` relaxes over the session's graph."""
+        """The engine's relaxation of a session's revision (:func:`slam6d.session_relaxation.relax_revision`)
+        with the session's settings, as ``slam6d relax SESSION --method METHOD`` runs it: ``graph`` over
+        the session's graph, and the odometry's tilt held where ``[engine] tilt_noise_deg`` declares an
+        inclinometer (:func:`slam6d.session_relaxation.revision_tilt_prior`)."""
         self.check_relaxable(session_id, method, fixed)
         context = self.context
-        config = context.config(session_id).relax
+        config = context.config(session_id)
 
         def work(progress: Progress, cancel: Cancel) -> dict[str, Any]:
             models = context.models(session_id)
             revision = context.workbench.head(session_id)  # the revision this job works from
             poses = list(revision.poses)
-            result = relax_poses(
+            scans = context.workbench.state(session_id).sequence().scans
+            tilt = revision_tilt_prior(
+                config,
+                method,
+                lambda: session_readings(context.session(session_id), [s.has_pose for s in scans]),
+                models,
+            )
+            rounds = config.relax.max_rounds
+            result = relax_revision(
                 method,
                 models,
-                poses,
-                graph_edges(len(poses), revision.graph),
+                revision,
                 fixed,
                 config,
-                progress=lambda done, _residual, _moved: progress(f"{method}: rounds", done, config.max_rounds),
+                tilt,
+                progress=lambda done, _residual, _moved: progress(f"{method}: rounds", done, rounds),
                 cancel=cancel,
                 edge_progress=lambda done, total: progress(f"{method}: matching edges", done, total),
-                links=sequential_links(len(poses), revision.graph),
                 scheduler=context.workbench.scheduler(),
             )
             # held scans are no part of the change: someone may move them meanwhile without a conflict
@@ -94,6 +105,7 @@ class Relaxation:
                 "method": method,
                 "fixed": list(fixed),
                 "rounds": result.iterations,
+                "tilt_noise_deg": None if tilt is None else tilt.noise_deg,
                 "residual_plane": [result.residual_before, result.residual_after],
                 "displacement": displacements(poses, relaxed),
             }

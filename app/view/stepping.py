@@ -29,6 +29,7 @@ from slam6d.events import (
 from slam6d.geometry import Matrix
 from slam6d.icp import correspondences
 from slam6d.pipeline import Pipeline
+from slam6d.session_relaxation import registration_readings
 
 MAX_CORRESPONDENCES = 300  # point pairs drawn per ICP iteration
 
@@ -44,7 +45,9 @@ class Stepper:
         self.viewer = viewer
         self.author = author
         config = pipeline_config(viewer.state.session.config.engine)
-        self.pipeline = Pipeline(working_copy(viewer.state.sequence()), config)
+        sequence = working_copy(viewer.state.sequence())
+        readings = registration_readings(viewer.state.session, config, [s.has_pose for s in sequence.scans])
+        self.pipeline = Pipeline(sequence, config, readings=readings)
         self.recorder = TraceRecorder()  # the stepped run is stored for replay too
         self.recorder.attach(self.pipeline)
         self.run = RunCommit(
