@@ -69,7 +69,7 @@ class RelaxationConfig:
     tolerance: float = 0.0005  # metres: stop LUM rounds when no scan moves more
     settle_fraction: float = 0.2  # or when, at the final robust scale, none moves more than this fraction of it
     chi2_tolerance: float = 0.005  # or when a round at the final robust scale changes the robust cost less (fraction)
-    damping: float = 1e-3  # Levenberg damping of the joint LUM step, relative to the diagonal
+    damping: float = 1e-3  # LUM: a scan's directions weaker than this x its strongest are held (lum._damped)
     robust_scale: float = 0.05  # metres: final Cauchy scale of the LUM point-to-plane residuals (0 = least squares)
 
 
