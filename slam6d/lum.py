@@ -23,7 +23,9 @@ step), so the rounds needed grow with how far off the relaxation starts: 4 round
 (3.1 cm after loop closing), 8 at 400 (25.7 cm), each round's work following the pairs. The first
 rounds therefore run on a thin sample (``coarse_fraction`` of ``pair_points``, the same pairs)
 until a round changes its robust cost by less than ``coarse_chi2_tolerance``; the full sample then
-refines in two or three rounds whatever the start (docs/scale.md, "The rounds' sample"). On the
+refines in two or three rounds whatever the start (docs/scale.md, "The rounds' sample"). The
+chi2 and robust cost of a thin round are scaled by the full sample's points over its own, so the
+chi2 reported before (the first round's) is an estimate of the full sample's, within a few per cent. On the
 400 scans this took 15.8 instead of 21.9 s of CPU to an ATE of 0.20 instead of 0.25 cm.
 """
 
@@ -265,6 +267,7 @@ class _Level:
     ) -> None:
         self.batches = _batches(models, graph_pairs, _edge_budget(models, graph_pairs, config))
         self.shared = scheduler.share([_shared_batch(models, b) for b in self.batches]) if scheduler is not None else []
+        self.points = sum(len(b.points) for b in self.batches)  # a round's budget-weighted sums grow with it
 
 
 @dataclass
@@ -513,6 +516,9 @@ def lum_relaxation(
             scale = max(scale, config.first_scale * 0.5 ** (rounds - 1) * models.config.max_distance)
         batches, shared = levels[level].batches, levels[level].shared
         last = _joint_step(models, current, batches, held, config, scale, scheduler, shared, tilt, patterns)
+        # the sums of a thin round, per point as many as the full sample's: chi2 before and after compare
+        to_full = levels[-1].points / levels[level].points
+        last = replace(last, chi2=last.chi2 * to_full, cost=last.cost * to_full)
         first = first or last
         moved = []
         largest = 0.0
