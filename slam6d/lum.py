@@ -16,6 +16,17 @@ scale moves no scan by more than ``settle_fraction`` of that scale, or changes t
 cost by less than ``chi2_tolerance`` (re-pairing keeps scans jittering below a millimetre, so the
 movement alone may never fall under ``tolerance``). The residuals reported come from the rounds'
 own queries, so reporting costs no extra pass.
+
+Each round goes only part of the way (on the dense simulated loop the ATE roughly halves per
+round: the closest-point pairs are drawn at the current poses, and the Cauchy weights damp the
+step), so the rounds needed grow with how far off the relaxation starts: 4 rounds at 100 scans
+(3.1 cm after loop closing), 8 at 400 (25.7 cm), each round's work following the pairs. The first
+rounds therefore run on a thin sample (``coarse_fraction`` of ``pair_points``, the same pairs)
+until a round changes its robust cost by less than ``coarse_chi2_tolerance``; the full sample then
+refines in two or three rounds whatever the start (docs/scale.md, "The rounds' sample"). The
+chi2 and robust cost of a thin round are scaled by the full sample's points over its own, so the
+chi2 reported before (the first round's) is an estimate of the full sample's, within a few per cent. On the
+400 scans this took 15.8 instead of 21.9 s of CPU to an ATE of 0.20 instead of 0.25 cm.
 """
 
 from __future__ import annotations
@@ -242,6 +253,21 @@ def _remote_scan_system(
         shared.pairs,
         float(robust_scale),
     )
+
+
+class _Level:
+    """The rounds' point sample at one budget: each scan's batch, and what the workers hold of it."""
+
+    def __init__(
+        self,
+        models: ScanModels,
+        graph_pairs: Sequence[NeighbourPair],
+        config: RelaxationConfig,
+        scheduler: Scheduler | None,
+    ) -> None:
+        self.batches = _batches(models, graph_pairs, _edge_budget(models, graph_pairs, config))
+        self.shared = scheduler.share([_shared_batch(models, b) for b in self.batches]) if scheduler is not None else []
+        self.points = sum(len(b.points) for b in self.batches)  # a round's budget-weighted sums grow with it
 
 
 @dataclass
@@ -497,8 +523,11 @@ def lum_relaxation(
     before, current, chosen, fixed_set, pairs = set_up(models, poses, fixed, members, config, links)
     graph_pairs = _strongest(pairs, len(models), config.max_neighbours)
     check_graph(models, graph_pairs, fixed_set, chosen)
-    batches = _batches(models, graph_pairs, _edge_budget(models, graph_pairs, config))
-    shared = scheduler.share([_shared_batch(models, b) for b in batches]) if scheduler is not None else []
+    levels = [_Level(models, graph_pairs, config, scheduler)]
+    if 0 < config.coarse_fraction < 1:  # the first rounds on a thinner sample (module docstring)
+        coarse = replace(config, pair_points=max(1, round(config.pair_points * config.coarse_fraction)))
+        levels.insert(0, _Level(models, graph_pairs, coarse, scheduler))
+    level = 0
     held = fixed_set | (set(range(len(models))) - set(chosen))
     patterns: dict[frozenset[int], BlockSystem] = {}
     first: _Round | None = None
@@ -513,7 +542,11 @@ def lum_relaxation(
         scale = config.robust_scale
         if scale > 0:
             scale = max(scale, config.first_scale * 0.5 ** (rounds - 1) * models.config.max_distance)
+        batches, shared = levels[level].batches, levels[level].shared
         last = _joint_step(models, current, batches, held, config, scale, scheduler, shared, tilt, patterns)
+        # the sums of a thin round, per point as many as the full sample's: chi2 before and after compare
+        to_full = levels[-1].points / levels[level].points
+        last = replace(last, chi2=last.chi2 * to_full, cost=last.cost * to_full)
         first = first or last
         moved = []
         largest = 0.0
@@ -530,10 +563,16 @@ def lum_relaxation(
             progress(rounds, last.residual, moved)
         # re-pairing keeps every scan jittering by a fraction of a millimetre, so a round that no
         # longer lowers the robust cost (at the final scale: comparable between rounds) ends it too
-        settled = previous is not None and abs(previous - last.cost) <= config.chi2_tolerance * previous
+        tolerance = config.chi2_tolerance if level == len(levels) - 1 else config.coarse_chi2_tolerance
+        settled = previous is not None and abs(previous - last.cost) <= tolerance * previous
         previous = last.cost if scale <= config.robust_scale else None
         small = largest <= max(config.tolerance, config.settle_fraction * config.robust_scale)
         settled = (small or settled) and scale <= config.robust_scale
+        # the thin sample settled (or only the full sample's two rounds are left): on to the full one
+        if level < len(levels) - 1 and (settled or rounds >= config.max_rounds - 2):
+            level += 1
+            settled, previous = False, None  # its robust cost is summed over other points
+            continue
         if settled:
             break
     assert first is not None and last is not None
@@ -541,7 +580,7 @@ def lum_relaxation(
     return RelaxationResult(
         poses=after,
         residual_before=first.residual,
-        residual_after=last.residual if settled else _round_residual(models, current, batches),
+        residual_after=last.residual if settled else _round_residual(models, current, levels[-1].batches),
         iterations=rounds,
         method="lum",
         neighbours=graph_pairs,

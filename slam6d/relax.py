@@ -71,6 +71,8 @@ class RelaxationConfig:
     chi2_tolerance: float = 0.005  # or when a round at the final robust scale changes the robust cost less (fraction)
     damping: float = 1e-3  # LUM: a scan's directions weaker than this x its strongest are held (lum._damped)
     robust_scale: float = 0.05  # metres: final Cauchy scale of the LUM point-to-plane residuals (0 = least squares)
+    coarse_fraction: float = 0.25  # LUM's first rounds sample this share of pair_points (1 = all rounds at full)
+    coarse_chi2_tolerance: float = 0.05  # until a round changes their robust cost less: then the full sample
 
 
 @dataclass
