@@ -12,7 +12,8 @@ registration had held it to the readings. Here each door gets what ``slam6d run`
 
 * :func:`relax_revision` with :func:`revision_tilt_prior` (``slam6d relax``, the workbench's
   *Relax*): the same readings weighed by the same rule as the run's relaxation stage
-  (:func:`slam6d.pipeline.registration_tilt_deg`);
+  (:func:`slam6d.pipeline.registration_tilt_deg`), and ``lum`` paired against the same scan models
+  (:func:`slam6d.pipeline.share_registration_models`);
 * :func:`close_revision_loops` (the workbench's *Close loops*): corrections that keep the tilt
   (:func:`slam6d.attitude.heading_only`), as the run's loop closing;
 * :func:`registration_readings` (the workbench's registration runs, which start from the head):
