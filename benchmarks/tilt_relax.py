@@ -14,11 +14,10 @@ both frames share gravity) as RMS and max; the tilt off the readings as RMS and 
 lie farther from their reading than the declared noise; and the relaxation's wall time with the
 load average, since the machine may be shared.
 
-The same two relaxations are then run in this process with one difference: LUM pairs against the
-scans' registration models (per-cube normals, a 0.2 m plane sample; what ``slam6d run``'s own
-relaxation pairs against, ``PipelineConfig.relax_registration_models``) instead of the k-NN normals
-of the reduced scans that ``slam6d relax`` and the workbench build: what a relaxation again would
-give with the run's models.
+LUM pairs against the scans' registration models (per-cube normals, a 0.2 m plane sample), as
+``slam6d run``'s own relaxation does (:func:`slam6d.pipeline.share_registration_models`); before
+they did, ``slam6d relax`` paired against the k-NN normals of the reduced scans and undid the
+run's map (docs/scale.md).
 
 Run: ``.venv/bin/python benchmarks/tilt_relax.py --scans /tmp/campus250 --run /tmp/c250 --work /tmp/tilt_relax``
 after ``slam6d simulate /tmp/campus250 --world campus --scans 250 --points-per-scan 20000 --seed 3``
@@ -38,14 +37,10 @@ from pathlib import Path
 import numpy as np
 
 from slam6d.attitude import declared_tilt_noise, measured_up, tilt_error_deg
-from slam6d.engine_settings import pipeline_config
 from slam6d.geometry import UOS, Matrix
 from slam6d.io.poses import read_kitti_poses
 from slam6d.metrics import rigid_alignment
-from slam6d.pipeline import registration_model
-from slam6d.relaxation_methods import reduced_models
 from slam6d.session import Session
-from slam6d.session_relaxation import relax_revision, revision_tilt_prior, session_readings
 
 
 def relax(session: Path, out: Path, *extra: str) -> tuple[float, str]:
@@ -77,30 +72,6 @@ def row(name: str, poses: list[Matrix], truth: list[Matrix], readings: list[Matr
     )
 
 
-def run_models(session: Session, truth: list[Matrix], readings: list[Matrix], noise: float) -> list[str]:
-    """Both relaxations of the session's revision in this process, LUM pairing against the scans'
-    registration models as ``slam6d run``'s relaxation does (module docstring)."""
-    sequence = session.load_sequence()
-    config = pipeline_config(session.config.engine)
-    models = reduced_models([s.points for s in sequence.scans], config.voxel_size, config.icp)
-    for k in range(len(models)):
-        model = registration_model(models.index(k), config)
-        if model is not models.index(k):
-            model.plane_normals()
-            models.share_plane_model(k, model)
-    revision = session.get_revision()
-    rows = []
-    held = revision_tilt_prior(
-        config, "lum", lambda: session_readings(session, [s.has_pose for s in sequence.scans]), models
-    )
-    for name, tilt in (("run's models, readings held", held), ("run's models, no readings", None)):
-        began = time.perf_counter()
-        result = relax_revision("lum", models, revision, [0], config, tilt)
-        extra = f"{time.perf_counter() - began:.1f} s in process, load {os.getloadavg()[0]:.1f}"
-        rows.append(row(name, result.poses, truth, readings, noise, extra))
-    return rows
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--scans", type=Path, required=True, help="a folder written by slam6d simulate (uos)")
@@ -129,7 +100,6 @@ def main() -> None:
         rows.append(
             row(name, read_kitti_poses(out), truth, readings, noise, f"{seconds:.1f} s, load {os.getloadavg()[0]:.1f}")
         )
-    rows += run_models(session, truth, readings, noise)
     print(f"{len(truth)} scans, inclinometer {noise:g}° declared")
     print(
         "| poses | ATE (across / height) | tilt off the truth RMS / max | off the reading RMS / scans > noise | relax |"

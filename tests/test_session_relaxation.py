@@ -21,10 +21,10 @@ from slam6d.errors import SessionError
 from slam6d.geometry import UOS, Matrix, invert, pose_from_xyzrpy
 from slam6d.io.poses import read_kitti_poses
 from slam6d.loops import LoopHypothesis
-from slam6d.relaxation_methods import reduced_models, relax_poses
+from slam6d.metrics import absolute_trajectory_error
+from slam6d.relaxation_methods import reduced_models
 from slam6d.session import Session
-from slam6d.session_graph import graph_edges, sequential_links
-from slam6d.session_relaxation import close_revision_loops
+from slam6d.session_relaxation import close_revision_loops, relax_revision
 from slam6d.simulate import SimulationConfig, simulate_session
 from tests.session_fixtures import corridor_session
 
@@ -66,8 +66,11 @@ def off_readings(poses: list[Matrix], readings: list[Matrix]) -> np.ndarray:
 def test_slam6d_relax_holds_each_scans_tilt_to_the_declared_readings(campus: Path, tmp_path: Path) -> None:
     """With the session's declaration every scan registered against fused scans (all but the first
     two, which ``slam6d run`` weighs as scans finding their planes alone: 0.006° a step) keeps its
-    tilt within the declared noise of its reading; with ``--tilt-noise-deg 0`` the ring pairs'
-    relative tilt bends the map several times the noise away from them, and off the truth too."""
+    tilt within the declared noise of its reading; with ``--tilt-noise-deg 0`` the scans go where
+    the pairs put them, several times farther from the readings (0.08° RMS against 0.02°, up to
+    0.17°). Neither bends the map off the truth: LUM pairs against the registration models, whose
+    per-cube normals leave a VLP-16's rings no relative tilt to pull by (0.09° at most; against the
+    k-NN normals of the reduced scans, 0.2°)."""
     session = registered_session(tmp_path, campus)
     assert session.config.engine["tilt_noise_deg"] == NOISE_DEG
     readings = session.poses(0)
@@ -77,16 +80,17 @@ def test_slam6d_relax_holds_each_scans_tilt_to_the_declared_readings(campus: Pat
 
     held_off, free_off = off_readings(held, readings)[2:], off_readings(free, readings)[2:]
     assert held_off.max() < 1.5 * NOISE_DEG, held_off
-    assert np.sqrt(np.mean(free_off**2)) > 3 * NOISE_DEG, free_off
-    assert free_off.max() > 6 * NOISE_DEG, free_off
-    held_truth, free_truth = off_readings(held, truth), off_readings(free, truth)
-    assert np.sqrt(np.mean(held_truth**2)) < 0.5 * np.sqrt(np.mean(free_truth**2))
+    assert np.sqrt(np.mean(held_off**2)) < 0.5 * np.sqrt(np.mean(free_off**2)), (held_off, free_off)
+    assert free_off.max() > 2 * NOISE_DEG, free_off
+    for relaxed in (held, free):
+        assert off_readings(relaxed, truth).max() < 3 * NOISE_DEG
 
 
-def test_relaxing_without_a_declaration_is_the_relaxation_as_before(campus: Path, tmp_path: Path) -> None:
+def test_relaxing_without_a_declaration_holds_no_tilt(campus: Path, tmp_path: Path) -> None:
     """A session that declares no inclinometer, and a declared one with ``--tilt-noise-deg 0``, relax
-    to exactly the poses the engine's relaxation gives without a prior (what ``slam6d relax`` ran
-    before it knew of readings)."""
+    to exactly the poses the session's relaxation gives without a prior, and the journal says no
+    tilt was held; the models the caller handed over keep their own normals (LUM's pairing against
+    the registration models is on a copy)."""
     corridor = corridor_session(tmp_path / "sessions", scans=4, points=3000, odometry_noise=0.1)
     for folder, extra in ((corridor, ()), (registered_session(tmp_path, campus).folder, ("--tilt-noise-deg", "0"))):
         session = Session.open(folder)
@@ -95,18 +99,38 @@ def test_relaxing_without_a_declaration_is_the_relaxation_as_before(campus: Path
         assert relax_cli(folder, tmp_path / "out.txt", "--commit", *extra)
         relaxed = Session.open(folder).poses()
         config = pipeline_config(session.config.engine)
-        before = relax_poses(
-            "lum",
-            reduced_models([s.points for s in sequence.scans], config.voxel_size, config.icp),
-            revision.poses,
-            graph_edges(len(revision.poses), revision.graph),
-            [0],
-            config.relax,
-            links=sequential_links(len(revision.poses), revision.graph),
-        )
-        for a, b in zip(relaxed, before.poses, strict=True):
+        models = reduced_models([s.points for s in sequence.scans], config.voxel_size, config.icp)
+        without = relax_revision("lum", models, revision, [0], config, tilt=None)
+        for a, b in zip(relaxed, without.poses, strict=True):
             np.testing.assert_allclose(a, b, atol=1e-9)
         assert Session.open(folder).journal.entries()[-1].parameters["tilt_noise_deg"] is None
+        assert all(models.plane_model(k) is models.index(k) for k in range(len(models)))
+
+
+def ate(poses: list[Matrix], truth: list[Matrix]) -> float:
+    return absolute_trajectory_error(np.array(poses), np.array(truth)).rmse
+
+
+def test_relaxing_a_runs_poses_again_keeps_its_map(campus: Path, tmp_path: Path) -> None:
+    """``slam6d relax`` on the poses ``slam6d run`` registered pairs LUM as the run's relaxation did
+    (the scans' registration models), so relaxing again leaves the map about as good as it was:
+    the ATE grows by no more than 3 mm, with the readings held and without. Paired against the
+    reduced scans' k-NN normals instead, a VLP-16's rings pulled the 20 campus scans from 0.70 cm to
+    1.29 cm (2.91 cm without the readings) and the 250-scan campus from 3.5 to 15.6 cm."""
+    out = tmp_path / "run"
+    ran = CliRunner().invoke(cli, ["run", str(campus), "--format", "uos", "--out", str(out)])
+    assert ran.exit_code == 0, ran.output
+    registered = [UOS.pose_to_canonical(p) for p in read_kitti_poses(out / "poses_kitti.txt")]
+    session = Session.create(tmp_path / "session", "Campus", campus)
+    session.load_sequence()  # revision 0: the odometry, i.e. the readings
+    session.journal.commit(registered, "test", "register", {"from": "slam6d run"})
+    truth = [UOS.pose_to_canonical(p) for p in read_kitti_poses(campus / "ground_truth_kitti.txt")]
+    before = ate(registered, truth)
+    held = ate(relax_cli(session.folder, tmp_path / "held.txt"), truth)
+    free = ate(relax_cli(session.folder, tmp_path / "free.txt", "--tilt-noise-deg", "0"), truth)
+    assert before < 0.02, before  # a run worth keeping
+    assert held <= before + 0.003, (before, held)
+    assert free <= before + 0.003, (before, free)
 
 
 def test_the_workbench_relax_job_holds_the_sessions_declared_tilt(campus: Path, tmp_path: Path) -> None:
