@@ -255,10 +255,10 @@ def neighbour_graph(
     scan of a 400-scan loop counted 96 candidates of its own, most not mutual: 78 pairs per scan
     against 49 at 100 scans, where almost every pair lies within the bound). When the overlapping
     pairs found exceed the bound, each scan keeps ``per_scan`` of the ``2 x per_scan`` counted pairs
-    it ranks first (:func:`_bounded_choice`), otherwise all of them are kept (BALM hall's 89 scans all overlap:
-    3,916 pairs, and every one dropped there cost accuracy, measured with 48 or 64 per scan:
-    far-apart self-consistency 1.90-1.94 instead of 1.88 cm). With 0 every overlapping pair is
-    kept, and their number grows with the square of the density (a 98 m loop: 3,413 pairs at 100
+    it ranks first (:func:`_bounded_choice`), otherwise all of them are kept (BALM hall's 89 scans
+    all overlap: 3,916 pairs, and every one dropped there cost accuracy, measured with 48 or 64 per
+    scan: far-apart self-consistency 1.90-1.94 instead of 1.88 cm). With 0 every overlapping pair
+    is kept, and their number grows with the square of the density (a 98 m loop: 3,413 pairs at 100
     scans, 52,776 at 400).
     """
     chosen = sorted(set(range(len(models))) if members is None else set(members))
