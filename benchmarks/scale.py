@@ -26,7 +26,8 @@ poses under ``cProfile`` (CPU time), its rounds and the ATE before and after it 
 split into the rounds' closest-point queries and normal-equation blocks,
 finding the bounded neighbour graph, gathering each scan's batch of neighbour points, and the
 sparse linear algebra (working out the block pattern, factorising and solving) - the measurement
-that decides whether the solve needs windows or a hierarchy (docs/scale.md).
+that decides whether the solve needs windows or a hierarchy (docs/scale.md) - and how many scan
+pairs the neighbour graph counted overlap for at the registered poses (its cost, as a count).
 
 ``--per-step N`` instead measures where the campus's height error comes from, on its first N scans:
 
@@ -293,6 +294,7 @@ def profile_relaxation(directory: Path) -> None:
 
     from slam6d.io.registry import read_sequence
     from slam6d.pipeline import Pipeline, PipelineConfig
+    from slam6d.relax import neighbour_graph
     from slam6d.relaxation_methods import relax_poses
 
     config = PipelineConfig()
@@ -330,9 +332,19 @@ def profile_relaxation(directory: Path) -> None:
     shares = ", ".join(
         f"{part} {t:.1f} s ({100 * t / seconds:.0f} %, {int(calls)} calls)" for part, (t, calls) in split.items()
     )
+    # the graph's cost in a count: the scan pairs whose overlap it counted at the registered poses
+    graph = neighbour_graph(
+        pipeline.models,
+        pipeline.poses,
+        config.relax.min_pairs,
+        links=pipeline.links,
+        per_scan=config.relax.neighbours_per_scan,
+    )
+    scans = len(pipeline.poses)
     print(
-        f"| {directory.name} | {len(pipeline.poses)} | {seconds:.1f} s | {result.iterations} | {len(result.neighbours):,}"
-        f" | {ate['before']:.2f} -> {ate['after']:.2f} cm | {shares} | {os.getloadavg()[0]:.1f} |",
+        f"| {directory.name} | {scans} | {seconds:.1f} s | {result.iterations} | {len(result.neighbours):,}"
+        f" | {graph.counted:,} ({graph.counted / scans:.1f} per scan) | {ate['before']:.2f} -> {ate['after']:.2f} cm"
+        f" | {shares} | {os.getloadavg()[0]:.1f} |",
         flush=True,
     )
 
@@ -480,8 +492,11 @@ def main() -> None:
     args = parser.parse_args()
     if args.profile_relaxation:
         print(f"LUM relaxation under cProfile, CPU seconds, {os.cpu_count()} cores (cProfile itself adds some)")
-        print("| session | scans | relaxation | rounds | neighbour pairs | ATE before -> after | of it | load |")
-        print("|---|---|---|---|---|---|---|---|")
+        print(
+            "| session | scans | relaxation | rounds | neighbour pairs | overlaps counted | ATE before -> after | of it"
+            " | load |"
+        )
+        print("|---|---|---|---|---|---|---|---|---|")
         for case, counts in (("loop", args.loop), ("campus", args.campus)):
             for scans in counts:
                 profile_relaxation(session(args.work, case, scans))

@@ -192,11 +192,10 @@ class TiltPrior:
         if count != len(self):
             raise ValueError(f"the tilt prior has readings for {len(self)} scans, the solve has {count}")
         blocks, gradient = np.zeros((count, 3, 3)), np.zeros((count, 3))
-        chi2 = 0.0
-        for k in np.flatnonzero(free & self.measured & (weights > 0)):
-            implied = rotations[k].T @ UP
-            blocks[k], gradient[k] = tilt_normal_equations(implied, self.ups[k], float(weights[k]))
-            chi2 += float(weights[k]) * float(np.sum((implied - self.ups[k]) ** 2))
+        active = np.flatnonzero(free & self.measured & (weights > 0))
+        implied = np.einsum("kji,j->ki", np.asarray(rotations, dtype=np.float64)[active], UP)  # R_kᵀ u
+        blocks[active], gradient[active] = tilt_normal_equations(implied, self.ups[active], weights[active])
+        chi2 = float(np.sum(weights[active] * np.sum((implied - self.ups[active]) ** 2, axis=1)))
         return blocks, gradient, chi2
 
     def for_fit(self, index: int, world_from_model: Matrix) -> ScanTilt | None:
@@ -220,18 +219,23 @@ def tilt_information(hessian: FloatArray, up: FloatArray) -> float:
     return max(float(np.trace(across @ reduced @ across)) / 2.0, 0.0)
 
 
-def tilt_normal_equations(turned: FloatArray, target: FloatArray, weight: float) -> tuple[FloatArray, FloatArray]:
+def tilt_normal_equations(
+    turned: FloatArray, target: FloatArray, weight: float | FloatArray
+) -> tuple[FloatArray, FloatArray]:
     """(A, b) to add to the normal equations A ω = b of a rotation update ω that turns the unit
     vector ``turned`` to ``turned + ω × turned``, for the residual ``turned - target`` with weight w:
     A = w (I - t tᵀ) (the two axes across it; a turn about itself changes nothing), b = w (t × target).
+    For many at once (a joint solve's scans, one call instead of one per scan: 18,000 calls cost
+    ~2 s of a 400-scan run), ``turned`` and ``target`` are (n, 3) and ``weight`` (n,); one vector gives the same bits either way.
 
     * ICP (update on the left, model frame, T <- Exp(ω) T): ``turned`` is the measured up carried
       into the model frame by the current transform, ``target`` the world's up in the model frame.
     * LUM (update on the right, X <- X Exp(φ)): the implied up ``R_kᵀ u`` is turned by -φ, so pass
       it as ``turned`` with the reading as ``target`` and negate b.
     """
-    t = turned / np.linalg.norm(turned)
-    return weight * (np.eye(3) - np.outer(t, t)), weight * np.cross(t, target)
+    t = turned / np.linalg.norm(turned, axis=-1, keepdims=True)
+    w = np.asarray(weight, dtype=np.float64)
+    return w[..., None, None] * (np.eye(3) - t[..., :, None] * t[..., None, :]), w[..., None] * np.cross(t, target)
 
 
 def heading_only(correction: Matrix, kept: FloatArray) -> Matrix:

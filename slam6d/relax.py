@@ -24,6 +24,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
+from itertools import islice
 
 import numba
 import numpy as np
@@ -41,12 +42,14 @@ Progress = Callable[[int, float, list[int]], None]  # (iteration, residual, scan
 
 __all__ = [
     "Cancelled",
+    "NeighbourGraph",
     "NeighbourPair",
     "RelaxationConfig",
     "RelaxationError",
     "RelaxationResult",
     "ScanModels",
     "carry_forward",
+    "neighbour_graph",
     "neighbour_pairs",
     "pair_residual",
 ]
@@ -211,6 +214,28 @@ def neighbour_pairs(
     links: Iterable[tuple[int, int]] = (),
     per_scan: int = 0,
 ) -> list[NeighbourPair]:
+    """The pairs of :func:`neighbour_graph` (the same arguments)."""
+    return neighbour_graph(models, poses, min_pairs, members, sample, links, per_scan).pairs
+
+
+@dataclass(frozen=True)
+class NeighbourGraph:
+    """The overlapping scan pairs found, and how many pairs had their overlap counted to find them
+    (the graph's cost: each count is one query of a thinned scan against another's tree)."""
+
+    pairs: list[NeighbourPair]
+    counted: int
+
+
+def neighbour_graph(
+    models: ScanModels,
+    poses: Sequence[Matrix],
+    min_pairs: int = 250,
+    members: Iterable[int] | None = None,
+    sample: int = 200,
+    links: Iterable[tuple[int, int]] = (),
+    per_scan: int = 0,
+) -> NeighbourGraph:
     """Scan pairs with more than ``min_pairs`` closest-point pairs at the current poses.
 
     A pair in ``links`` (scans registered one onto the other, e.g. consecutive scans of sequential
@@ -218,87 +243,127 @@ def neighbour_pairs(
     so a sparse scan whose overlap falls under ``min_pairs`` must not cut the graph there.
 
     Only pairs whose scanned regions can touch (distance below the sum of their 95th-percentile
-    ranges) are counted, found through a radius index over the scan positions, on an evenly thinned copy
-    of the data scan scaled back up; that turns an O(n²) sweep of full queries into one cheap query
-    per scan. A quarter of ``sample`` is tried first: a pair where a third of it finds partners is
-    far above any useful ``min_pairs`` and keeps that estimate; only the others are counted on the
-    full ``sample``.
+    ranges) are counted, found through a radius index over the scan positions, on an evenly thinned
+    copy of the data scan scaled back up (:class:`_Overlaps`); that turns an O(n²) sweep of full
+    queries into one cheap query per scan.
 
     ``per_scan`` > 0 bounds the graph to ``per_scan`` x scans pairs however densely the scans lie.
-    Each scan's overlap is counted with at most ``2 x per_scan`` candidates spread along the path
-    (:func:`_spread_candidates`); when the overlapping pairs found exceed the bound, each scan keeps
-    ``per_scan`` of its own choosing (:func:`_bounded_choice`), otherwise all of them are kept (BALM
-    hall's 89 scans all overlap: 3,916 pairs, and every one dropped there cost accuracy, measured
-    with 48 or 64 per scan: far-apart self-consistency 1.90-1.94 instead of 1.88 cm). With 0 every
-    overlapping pair is kept, and their number grows with the square of the density (a 98 m loop:
-    3,413 pairs at 100 scans, 52,776 at 400).
+    Each scan has its overlap counted with ``2 x per_scan`` candidates spread along the path
+    (:func:`_spread_candidates`), the pairs counted already from the other side included: a scan
+    only adds candidates until it has that many, so the pairs counted stay near ``per_scan`` per
+    scan whatever the density (without the pairs counted from the other side in its tally, every
+    scan of a 400-scan loop counted 96 candidates of its own, most not mutual: 78 pairs per scan
+    against 49 at 100 scans, where almost every pair lies within the bound). When the overlapping
+    pairs found exceed the bound, each scan keeps ``per_scan`` of the ``2 x per_scan`` counted pairs
+    it ranks first (:func:`_bounded_choice`), otherwise all of them are kept (BALM hall's 89 scans
+    all overlap: 3,916 pairs, and every one dropped there cost accuracy, measured with 48 or 64 per
+    scan: far-apart self-consistency 1.90-1.94 instead of 1.88 cm). With 0 every overlapping pair
+    is kept, and their number grows with the square of the density (a 98 m loop: 3,413 pairs at 100
+    scans, 52,776 at 400).
     """
     chosen = sorted(set(range(len(models))) if members is None else set(members))
     linked = {(min(i, j), max(i, j)) for i, j in links}
     if len(chosen) < 2:
-        return []
+        return NeighbourGraph([], 0)
+    ids = np.array(chosen, dtype=np.int64)
     extents = np.array([models.extent(k) for k in chosen])
     centres = np.array([poses[k][:3, 3] for k in chosen])
     nearby = RadiusIndex(centres)
     widest = float(extents.max())
 
     def near(a_pos: int) -> NDArray[np.int64]:
-        """Positions (in ``chosen``) of the scans whose reach overlaps scan ``chosen[a_pos]``'s."""
+        """The scans whose reach overlaps scan ``chosen[a_pos]``'s, ascending."""
         ball = nearby.within(centres[a_pos], extents[a_pos] + widest)
         ball = ball[ball != a_pos]
         gaps = np.linalg.norm(centres[ball] - centres[a_pos], axis=1)
-        return np.sort(ball[gaps <= extents[a_pos] + extents[ball]])
+        return ids[np.sort(ball[gaps <= extents[a_pos] + extents[ball]])]
 
-    counted: dict[tuple[int, int], int] = {}
-
-    def count(i: int, others: Sequence[int]) -> None:
-        """Estimate the closest-point pairs of (i, j) for every j in ``others`` not counted yet:
-        j's thinned points found in scan i's tree (one query for all of them), scaled to j's size."""
-        todo = [j for j in others if (min(i, j), max(i, j)) not in counted]
-        if not todo:
-            return
-        hits, sizes = _hits(models, poses, i, todo, first)
-        sure = hits * 3 >= sizes
-        unsure = [j for j, s in zip(todo, sure, strict=True) if not s]
-        if unsure:
-            hits[~sure], sizes[~sure] = _hits(models, poses, i, unsure, sample)
-        for j, hit, size in zip(todo, hits, sizes, strict=True):
-            counted[(min(i, j), max(i, j))] = int(hit * len(models.points[j]) / size)
-
-    first = max(1, sample // 4)
+    overlaps = _Overlaps(models, poses, sample)
     keep: set[tuple[int, int]] = set()
     if per_scan <= 0:
         for a_pos, i in enumerate(chosen):
-            later = [chosen[b] for b in near(a_pos) if b > a_pos]
-            count(i, later)
+            later = [int(j) for j in near(a_pos) if j > i]
+            overlaps.count(i, later)
             keep.update((i, j) for j in later)
     else:
         travelled = path_lengths(poses)
+        positions = np.array([p[:3, 3] for p in poses])
+        on_path = [_ScanOnPath(i, positions, travelled, extents[a_pos], per_scan) for a_pos, i in enumerate(chosen)]
         candidates = []
-        on_path = [
-            _ScanOnPath(i, centres[a_pos], poses, travelled, extents[a_pos], per_scan) for a_pos, i in enumerate(chosen)
-        ]
         for a_pos, i in enumerate(chosen):
-            candidates.append(_spread_candidates(on_path[a_pos], [chosen[b] for b in near(a_pos)]))
-            count(i, candidates[-1])
-        keep = {key for key, found in counted.items() if found > min_pairs}
+            counted = overlaps.of(i)
+            order = _spread_candidates(on_path[a_pos], near(a_pos))  # the sequential neighbours first
+            sequential = sum(1 for j in order[:2] if abs(j - i) == 1 and j not in counted)
+            room = max(2 * per_scan - len(counted), sequential)
+            overlaps.count(i, list(islice((j for j in order if j not in counted), room)))
+            # what scan i chooses from: the 2 x per_scan of its counted pairs it ranks first
+            ranked = np.array(order, dtype=np.int64)
+            candidates.append(ranked[np.isin(ranked, list(counted))][: max(2 * per_scan, sequential)].tolist())
+        keep = {key for key, found in overlaps.found.items() if found > min_pairs}
         if len(keep) > per_scan * len(chosen):  # within the bound the whole graph is kept: nothing to choose
             keep = set()
-            for a_pos, i in enumerate(chosen):
-                overlapping = [j for j in candidates[a_pos] if counted[(min(i, j), max(i, j))] > min_pairs]
-                strength = {j: counted[(min(i, j), max(i, j))] for j in overlapping}
-                for j in _bounded_choice(on_path[a_pos], overlapping, strength):
-                    keep.add((min(i, j), max(i, j)))
+            for scan, pool in zip(on_path, candidates, strict=True):
+                counted = overlaps.of(scan.i)
+                overlapping = [j for j in pool if counted[j] > min_pairs]
+                for j in _bounded_choice(scan, overlapping, {j: counted[j] for j in overlapping}):
+                    keep.add((min(scan.i, j), max(scan.i, j)))
     members_set = set(chosen)
     for i, j in linked:  # a registration related the two scans: kept with any pairs at all
         if i in members_set and j in members_set:
-            count(i, [j])
+            overlaps.count(i, [j])
             keep.add((i, j))
-    return [
-        NeighbourPair(i, j, counted[(i, j)])
+    found = overlaps.found
+    pairs = [
+        NeighbourPair(i, j, found[(i, j)])
         for i, j in sorted(keep)
-        if counted[(i, j)] > min_pairs or (counted[(i, j)] > 0 and (i, j) in linked)
+        if found[(i, j)] > min_pairs or (found[(i, j)] > 0 and (i, j) in linked)
     ]
+    return NeighbourGraph(pairs, len(found))
+
+
+class _Overlaps:
+    """Closest-point pairs of scan pairs, each pair counted once (from whichever scan asks first).
+
+    A pair's count is an estimate: ``sample`` evenly thinned points of scan j placed in scan i's
+    frame and found in its tree within the ICP max distance, scaled up to j's size. A quarter of
+    ``sample`` is tried first: a pair where a third of it finds partners is far above any useful
+    ``min_pairs`` and keeps that estimate; only the others are counted on the full ``sample``.
+    """
+
+    def __init__(self, models: ScanModels, poses: Sequence[Matrix], sample: int) -> None:
+        self.models = models
+        self.poses = poses
+        self.sample = sample
+        self.found: dict[tuple[int, int], int] = {}
+        self._partners: dict[int, dict[int, int]] = {}
+
+    def of(self, i: int) -> dict[int, int]:
+        """Scan i's counted pairs so far: partner -> closest-point pairs (a live view)."""
+        return self._partners.setdefault(i, {})
+
+    def count(self, i: int, others: Sequence[int]) -> None:
+        """Count the pairs (i, j) for every j in ``others`` not counted yet: one query of scan i's tree."""
+        counted = self.of(i)
+        todo = [j for j in others if j not in counted]
+        if not todo:
+            return
+        hits, sizes = self._hits(i, todo, max(1, self.sample // 4))
+        unsure = hits * 3 < sizes
+        if unsure.any():
+            hits[unsure], sizes[unsure] = self._hits(
+                i, [j for j, u in zip(todo, unsure, strict=True) if u], self.sample
+            )
+        for j, hit, size in zip(todo, hits.tolist(), sizes.tolist(), strict=True):
+            found = int(hit * len(self.models.points[j]) / size)
+            self.found[(i, j) if i < j else (j, i)] = found
+            counted[j] = found
+            self.of(j)[i] = found
+
+    def _hits(self, i: int, others: Sequence[int], sample: int) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+        """Per scan of ``others``: how many of its ``sample`` thinned points have a partner in scan i, of how many."""
+        placed, _, source, _ = placed_in(self.models, self.poses, i, others, sample)
+        _, idx = self.models.index(i).nearest(placed, self.models.config.max_distance)
+        return np.bincount(source[idx >= 0], minlength=len(others)), np.bincount(source, minlength=len(others))
 
 
 SECTORS = 8  # bearings a scan's neighbours are spread over
@@ -307,12 +372,11 @@ STRETCH = 0.25  # a path stretch (the unit neighbours are spread along) as a fra
 
 @dataclass(frozen=True)
 class _ScanOnPath:
-    """Scan ``i`` where it lies - its centre, how far along the path, how far it reaches - and its bound
-    of neighbours: what choosing the scans it is paired with needs."""
+    """Scan ``i`` where it lies - every scan's position, how far along the path each lies, how far
+    scan i reaches - and its bound of neighbours: what choosing the scans it is paired with needs."""
 
     i: int
-    centre: FloatArray
-    poses: Sequence[Matrix]
+    positions: FloatArray
     travelled: FloatArray
     reach: float
     per_scan: int
@@ -321,35 +385,35 @@ class _ScanOnPath:
         """Which stretch of the path each of ``others`` lies on, counted from scan i (signed: before or after it)."""
         return np.floor((self.travelled[np.asarray(others)] - self.travelled[self.i]) / max(STRETCH * self.reach, 1e-9))
 
-    def sector(self, j: int) -> int:
-        """The bearing sector around scan i that scan j lies in."""
-        d = self.poses[j][:3, 3] - self.centre
-        return int(np.floor((np.arctan2(d[1], d[0]) + np.pi) / (2 * np.pi) * SECTORS)) % SECTORS
+    def sectors(self, others: NDArray[np.int64] | Sequence[int]) -> NDArray[np.int64]:
+        """The bearing sector around scan i that each of ``others`` lies in."""
+        d = self.positions[np.asarray(others, dtype=np.int64)] - self.positions[self.i]
+        return np.floor((np.arctan2(d[:, 1], d[:, 0]) + np.pi) / (2 * np.pi) * SECTORS).astype(np.int64) % SECTORS
+
+    def gaps(self, others: NDArray[np.int64]) -> FloatArray:
+        return np.linalg.norm(self.positions[others] - self.positions[self.i], axis=1)
 
 
-def _spread_candidates(scan: _ScanOnPath, near: Sequence[int]) -> list[int]:
-    """The scans worth counting overlap with for scan i, at most ``2 x per_scan``: its sequential
-    neighbours, then the closest scan of each path stretch (a quarter of its reach) in reach, then
-    the second closest of each, and so on, nearer ones first within each round.
+def _spread_candidates(scan: _ScanOnPath, near: NDArray[np.int64]) -> list[int]:
+    """The scans worth counting overlap with for scan i, best first: its sequential neighbours,
+    then the closest scan of each path stretch (a quarter of its reach) in reach, then the second
+    closest of each, and so on, nearer ones first within each round.
 
-    The stretches make the number counted independent of how densely the path is scanned: a
-    revisit from the other direction, much farther along the path, is a stretch of its own and
-    gets its candidates before a tenth scan of the stretch scan i lies on.
+    The stretches make the order independent of how densely the path is scanned: a revisit from
+    the other direction, much farther along the path, is a stretch of its own and gets its
+    candidates before a tenth scan of the stretch scan i lies on.
     """
-    near_set = set(near)
-    sequential = [j for j in (scan.i - 1, scan.i + 1) if j in near_set]
-    others = np.asarray(near, dtype=np.int64)
-    if len(others) == 0:
+    sequential = [j for j in (scan.i - 1, scan.i + 1) if j in set(near.tolist())]
+    if len(near) == 0:
         return sequential
-    gaps = np.linalg.norm(np.array([scan.poses[j][:3, 3] for j in others]) - scan.centre, axis=1)
-    stretches = scan.stretches(others)
+    gaps = scan.gaps(near)
+    stretches = scan.stretches(near)
     order = np.lexsort((gaps, stretches))  # by stretch, the closest first within each
     sorted_stretches = stretches[order]
     starts = np.flatnonzero(np.r_[True, sorted_stretches[1:] != sorted_stretches[:-1]])
     rank = np.arange(len(order)) - np.repeat(starts, np.diff(np.r_[starts, len(order)]))
-    spread = [int(j) for j in others[order[np.lexsort((gaps[order], rank))]]]
-    out = list(dict.fromkeys(sequential + spread))
-    return out[: max(2 * scan.per_scan, len(sequential))]
+    spread = near[order[np.lexsort((gaps[order], rank))]]
+    return sequential + spread[~np.isin(spread, sequential)].tolist()
 
 
 def _bounded_choice(scan: _ScanOnPath, overlapping: Sequence[int], strength: dict[int, int]) -> list[int]:
@@ -361,38 +425,31 @@ def _bounded_choice(scan: _ScanOnPath, overlapping: Sequence[int], strength: dic
     scans just before and after (the same stretch of path, seen the same way); the pairs that make
     a map globally consistent are the ones seen from elsewhere.
     """
-    ranked = sorted(overlapping, key=lambda j: -strength[j])
+    candidates = np.asarray(overlapping, dtype=np.int64)
+    strengths = np.array([strength[j] for j in overlapping], dtype=np.int64)
+    ranked = candidates[np.argsort(-strengths, kind="stable")]
     picked = [j for j in (scan.i - 1, scan.i + 1) if j in strength]
-    sectors: set[int] = set()
-    for j in ranked:
-        sector = scan.sector(j)
-        if j not in picked and sector not in sectors:
-            sectors.add(sector)
-            picked.append(j)
+    others = ranked[~np.isin(ranked, picked)]
+    _, first_of_sector = np.unique(scan.sectors(others), return_index=True)  # the best of each sector
+    picked += others[np.sort(first_of_sector)].tolist()
     picked = picked[: max(scan.per_scan, 2)]
     # then round by round over the path's stretches: the best of each stretch not represented yet,
     # then the second best of each, ... (a scan's own stretch holds the most, and the most alike)
-    seen: dict[int, int] = {}
-    for j in picked:
-        key = int(scan.stretches([j])[0])
-        seen[key] = seen.get(key, 0) + 1
-    rounds = []
-    for j in ranked:
-        if j not in picked:
-            key = int(scan.stretches([j])[0])
-            seen[key] = seen.get(key, 0) + 1
-            rounds.append((seen[key], -strength[j], j))
-    picked += [j for _, _, j in sorted(rounds)[: max(0, scan.per_scan - len(picked))]]
-    return picked
-
-
-def _hits(
-    models: ScanModels, poses: Sequence[Matrix], i: int, others: Sequence[int], sample: int
-) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
-    """Per scan of ``others``: how many of its ``sample`` thinned points have a partner in scan i, of how many."""
-    placed, _, source, _ = placed_in(models, poses, i, others, sample)
-    _, idx = models.index(i).nearest(placed, models.config.max_distance)
-    return np.bincount(source[idx >= 0], minlength=len(others)), np.bincount(source, minlength=len(others))
+    rest = ranked[~np.isin(ranked, picked)]
+    if len(rest) == 0 or len(picked) >= scan.per_scan:
+        return picked
+    stretches = scan.stretches(rest)
+    taken, taken_counts = np.unique(scan.stretches(picked), return_counts=True) if picked else (np.zeros(0), [])
+    already = dict(zip(taken.tolist(), np.asarray(taken_counts).tolist(), strict=True))
+    order = np.argsort(stretches, kind="stable")  # within a stretch: ranked (best first) order kept
+    sorted_stretches = stretches[order]
+    starts = np.flatnonzero(np.r_[True, sorted_stretches[1:] != sorted_stretches[:-1]])
+    within = np.arange(len(order)) - np.repeat(starts, np.diff(np.r_[starts, len(order)]))
+    rounds = np.empty(len(rest), dtype=np.int64)
+    rounds[order] = within + 1 + np.array([already.get(s, 0) for s in sorted_stretches.tolist()], dtype=np.int64)
+    rest_strength = np.array([strength[j] for j in rest.tolist()], dtype=np.int64)
+    by_round = np.lexsort((rest, -rest_strength, rounds))
+    return picked + rest[by_round[: scan.per_scan - len(picked)]].tolist()
 
 
 def measured_result(

@@ -15,7 +15,14 @@ from slam6d.posegraph import (
     optimize_pose_graph,
     point_pair_information,
 )
-from slam6d.relax import RelaxationConfig, ScanModels, carry_forward, neighbour_pairs, pair_residual
+from slam6d.relax import (
+    RelaxationConfig,
+    ScanModels,
+    carry_forward,
+    neighbour_graph,
+    neighbour_pairs,
+    pair_residual,
+)
 from slam6d.simultaneous import simultaneous_matching
 from tests.simulated_loop import simulated_loop
 
@@ -374,6 +381,22 @@ def test_bounded_neighbour_graph_stays_connected_within_its_bound(scans: int) ->
     assert any(p.j - p.i > scans // 2 for p in bounded)
     if scans == 72:  # dense: every overlapping pair is several times the bound
         assert len(every) > 2 * len(bounded)
+
+
+@pytest.mark.parametrize("scans", [72, 144])
+def test_bounded_graph_counts_overlap_with_about_per_scan_pairs_per_scan_whatever_the_density(scans: int) -> None:
+    """The graph's cost is the pairs whose overlap it counts. On a loop scanned ever more densely the
+    bounded graph counts about ``per_scan`` pairs per scan (each scan's tally of ``2 x per_scan``
+    includes the pairs counted from the other side), while counting every overlapping pair costs
+    per scan what the density is. Before the tally, each scan counted ``2 x per_scan`` candidates of
+    its own, most not mutual: 9.5 and 10 pairs per scan here for ``per_scan`` 6."""
+    sim, models = _dense_loop(scans)
+    per_scan = 6
+    bounded = neighbour_graph(models, sim.truth, min_pairs=100, per_scan=per_scan)
+    every = neighbour_graph(models, sim.truth, min_pairs=100)
+    assert bounded.counted <= 1.35 * per_scan * scans
+    assert every.counted > 3 * bounded.counted  # 35 and 72 pairs per scan
+    assert len(bounded.pairs) <= per_scan * scans and _components(scans, bounded.pairs) == 1
 
 
 def test_bounded_graph_relaxes_a_dense_loop_as_well_as_the_full_graph() -> None:
