@@ -215,6 +215,7 @@ class PipelineConfig:
     odometry_trust_m: float = 0.3
     odometry_trust_deg: float = 3.0
     hold_constraint: float = 0.025
+    residual_gate: float = 3.0
     tilt_noise_deg: float | None = None
     registration_tilt_deg: float = PLANES_TILT_DEG
     fused_registration_tilt_deg: float = RINGS_TILT_DEG
@@ -317,6 +318,7 @@ class Pipeline:
             self._icp_config,
             epsilon=max(config.icp.epsilon, config.registration_epsilon),
             hold_below=config.hold_constraint,
+            residual_gate=config.residual_gate,
         )
         # a constant-velocity prediction is off by however much the motion changed (a car easing out
         # of a turn: 4° of yaw); a fit from it that pairs clearly fewer than usual is redone with this
