@@ -97,9 +97,9 @@ class ICPConfig:
     instead of 0.5 cm). Why the gate: a pair whose model plane is wrong (a cube normal
     fitted over a distant surface's sparse scan lines, an edge, a crown) sits centimetres off its
     plane at the true pose, and with the same scanner's sampling pattern on both sides those
-    residuals shrink where the patterns line up - at zero motion. Kept, they pulled every 24 cm step
-    of the dense simulated loop (400 scans) 1.1 cm short even from the true pose; gated at 3, 0.07 cm
-    (docs/scale.md, "Short steps: pairs off their planes"). ``pairs`` (and so the fitness) still
+    residuals shrink where the patterns line up - at zero motion. Kept, they pulled the 24 cm steps of
+    the dense simulated loop (400 scans) 0.44 cm short on average even from the true pose; gated at
+    4, 0.005 cm (docs/scale.md, "Short steps: pairs off their planes"). ``pairs`` (and so the fitness) still
     counts every pair found within ``max_distance``: how much of the scan overlaps the model.
 
     ``facing_pairs`` (point-to-plane only): the data are a scan in its scanner's own frame (the

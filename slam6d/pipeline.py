@@ -186,11 +186,11 @@ class PipelineConfig:
     over a distant surface's sparse scan lines, an edge) sit centimetres off it even at the true
     pose, and their residuals shrink where the two scans' sampling patterns line up, at zero motion:
     on the dense simulated loop scanned 400 times (24 cm steps) they shortened every step by
-    0.44 cm on average (ATE after registration 31 cm, after loop closing 25 cm, which LUM needed 9
-    rounds to remove); gated at 3, 0.007 cm (3.0 cm, 1.5 cm; docs/scale.md, "Short steps: pairs off
-    their planes"). Steps of 1 m are too long for the patterns to line up near the truth (100 scans:
-    +0.04 cm per step either way), but the same pairs scatter them (ATE after registration 7.7 ->
-    1.5 cm).
+    0.44 cm on average (ATE after registration 31 cm, after loop closing 25 cm, which LUM needed 8
+    rounds to remove); gated at 4, 0.03 cm (ATE after registration 4.2 cm; docs/scale.md, "Short
+    steps: pairs off their planes"). Steps of 1 m are too long for the patterns to line up near the
+    truth (100 scans: +0.04 cm per step), but the same pairs scatter them (ATE after registration
+    7.7 -> 1.8 cm). The gate waits for ICP to converge with every pair (``ICPConfig.residual_gate``).
     ``tilt_noise_deg``: the odometry poses' roll and pitch are an inclinometer's readings with this
     noise (degrees), absolute rather than accumulated; each scan's measured up is then a prior on
     its roll and pitch in sequential ICP and in the ``lum`` and ``graph`` relaxations, weighed
@@ -226,7 +226,7 @@ class PipelineConfig:
     odometry_trust_m: float = 0.3
     odometry_trust_deg: float = 3.0
     hold_constraint: float = 0.025
-    residual_gate: float = 3.0
+    residual_gate: float = 4.0
     tilt_noise_deg: float | None = None
     registration_tilt_deg: float = PLANES_TILT_DEG
     fused_registration_tilt_deg: float = RINGS_TILT_DEG
