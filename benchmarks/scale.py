@@ -50,8 +50,9 @@ registration along the motion (docs/scale.md, "Short steps: pairs off their plan
 
 * the cost: every consecutive pair matched from its TRUE relative pose by 15 point-to-plane steps
   against the previous scan's registration model, every pair within the max distance kept and with
-  the engine's residual gate (``PipelineConfig.residual_gate``); the mean error along the step;
-* the effect: sequential registration alone (no loops, no relaxation) with the gate off and on:
+  the residual gate (``PipelineConfig.residual_gate``); the mean error along the step;
+* the effect: sequential registration alone (no loops, no relaxation) with the gate off and on
+  (``--residual-gate``, default 4 here):
   the ATE and the mean and summed error of the estimated steps along the true ones.
 
 ``--loop-report`` adds, after each campus run, where its error lies and what the loops did, from
@@ -393,14 +394,14 @@ def along_steps(truth: list[Matrix], estimate: list[Matrix]) -> np.ndarray:
     return np.array(errors)
 
 
-def step_bias(work: Path, scans: int) -> None:
+def step_bias(work: Path, scans: int, gate_on: float) -> None:
     """The ``--step-bias`` rows of one dense loop (see the module docstring)."""
     directory = session(work, "loop", scans)
     sequence = read_sequence(directory, "uos")
     truth = [UOS.pose_to_canonical(p) for p in read_kitti_poses(directory / "ground_truth_kitti.txt")]
     config = PipelineConfig(loops=False, relaxation="none")
     lengths = [float(np.linalg.norm((invert(truth[k - 1]) @ truth[k])[:3, 3])) for k in range(1, scans)]
-    for gate in (0.0, config.residual_gate):
+    for gate in (0.0, gate_on):
         run = Pipeline(sequence, replace(config, residual_gate=gate))
         run.run()
         pulls = []
@@ -517,6 +518,12 @@ def main() -> None:
     parser.add_argument("--memory-budget", help="passed to slam6d run (e.g. 2GB)")
     parser.add_argument("--scheduler", help="also run on this Dask scheduler (e.g. local:2) and compare")
     parser.add_argument(
+        "--residual-gate",
+        type=float,
+        default=0.0,
+        help="passed to slam6d run (e.g. 4); with --step-bias the gate compared with none (default 4)",
+    )
+    parser.add_argument(
         "--profile-relaxation", action="store_true", help="profile LUM relaxation on the sessions instead"
     )
     parser.add_argument("--per-step", type=int, metavar="N", help="only the campus's per-step error tables on N scans")
@@ -552,9 +559,11 @@ def main() -> None:
         print("| scans | step | residual gate | from the truth, mean | registration, mean | summed | ATE |")
         print("|---|---|---|---|---|---|---|")
         for scans in args.loop:
-            step_bias(args.work, scans)
+            step_bias(args.work, scans, args.residual_gate or 4.0)
         return
     extra = ["--memory-budget", args.memory_budget] if args.memory_budget else []
+    if args.residual_gate:
+        extra += ["--residual-gate", str(args.residual_gate)]
     print(f"slam6d run, {os.cpu_count()} cores; load average before: {os.getloadavg()[0]:.1f}")
     print("| case | scans | wall | CPU | stages | neighbour pairs | peak memory | ATE | ATE before relaxation | load |")
     print("|---|---|---|---|---|---|---|---|---|---|")

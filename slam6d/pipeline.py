@@ -182,12 +182,14 @@ class PipelineConfig:
     0.9-3.3 cm (docs/robustness.md, "Indoor hand-held walks without odometry").
     ``residual_gate``: sequential ICP leaves out, each step, the pairs whose point-to-plane residual
     lies more than this many robust standard deviations from the median (``ICPConfig.residual_gate``;
-    0 keeps every pair within the max distance). Pairs whose model plane is wrong (a cube normal
+    0, the default, keeps every pair within the max distance). Off by default because LUM, which
+    still pairs every point, then relaxes from a start it does not agree with: on the 8-scan test
+    loop the final ATE rose 0.38 -> 0.44 cm, BALM's RPE 0.55 -> 0.58 cm (docs/scale.md). Pairs whose model plane is wrong (a cube normal
     over a distant surface's sparse scan lines, an edge) sit centimetres off it even at the true
     pose, and their residuals shrink where the two scans' sampling patterns line up, at zero motion:
     on the dense simulated loop scanned 400 times (24 cm steps) they shortened every step by
     0.44 cm on average (ATE after registration 31 cm, after loop closing 25 cm, which LUM needed 8
-    rounds to remove); gated at 4, 0.03 cm (ATE after registration 4.2 cm; docs/scale.md, "Short
+    rounds to remove); gated at 4 (``slam6d run --residual-gate 4``), 0.03 cm (ATE after registration 4.2 cm; docs/scale.md, "Short
     steps: pairs off their planes"). Steps of 1 m are too long for the patterns to line up near the
     truth (100 scans: +0.04 cm per step), but the same pairs scatter them (ATE after registration
     7.7 -> 1.8 cm). The gate waits for ICP to converge with every pair (``ICPConfig.residual_gate``).
@@ -226,7 +228,7 @@ class PipelineConfig:
     odometry_trust_m: float = 0.3
     odometry_trust_deg: float = 3.0
     hold_constraint: float = 0.025
-    residual_gate: float = 4.0
+    residual_gate: float = 0.0
     tilt_noise_deg: float | None = None
     registration_tilt_deg: float = PLANES_TILT_DEG
     fused_registration_tilt_deg: float = RINGS_TILT_DEG

@@ -511,7 +511,7 @@ def test_short_steps_of_a_dense_scanner_are_not_pulled_short() -> None:
     these 44 steps by 0.55 cm each (registration-only ATE 10.5 cm), left out
     (``PipelineConfig.residual_gate``) by 0.06 cm (ATE 1.5 cm; docs/scale.md, "Short steps")."""
     loop = simulated_loop(scans=400, points=30000, first=45)
-    run = Pipeline(loop.sequence, PipelineConfig(loops=False, relaxation="none"))
+    run = Pipeline(loop.sequence, PipelineConfig(loops=False, relaxation="none", residual_gate=4.0))
     run.run()
     forward = []
     for k in range(1, len(loop.truth)):
