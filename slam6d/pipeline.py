@@ -265,6 +265,8 @@ class PipelineConfig:
             raise ValueError(f"metascan_scans must be at least 1, got {self.metascan_scans}")
         if self.fused_scans < 0:
             raise ValueError(f"fused_scans must be >= 0 (0 or 1 = never fuse), got {self.fused_scans}")
+        if not (self.residual_gate >= 0 and math.isfinite(self.residual_gate)):
+            raise ValueError(f"residual_gate must be >= 0 (0 = keep every pair), got {self.residual_gate}")
         if self.max_range is not None and not self.max_range > 0:
             raise ValueError(f"max_range must be positive, got {self.max_range}")
         if self.tilt_noise_deg is not None and not (self.tilt_noise_deg > 0 and math.isfinite(self.tilt_noise_deg)):

@@ -220,6 +220,8 @@ def test_config_rejects_unknown_names() -> None:
         PipelineConfig(matching="global")
     with pytest.raises(ValueError, match="relaxation"):
         PipelineConfig(relaxation="gtsam")
+    with pytest.raises(ValueError, match="residual_gate"):
+        PipelineConfig(residual_gate=-1.0)
 
 
 def test_results_are_written_in_the_inputs_units_and_frame(small_loop, tmp_path) -> None:  # type: ignore[no-untyped-def]
@@ -247,9 +249,8 @@ def test_cli_run_writes_poses_frames_and_report(tmp_path) -> None:
     session = simulate_session(
         tmp_path / "in", SimulationConfig(seed=2, scans=6, points_per_scan=15000, loop_length=16.0, loop_width=10.0)
     )
-    result = CliRunner().invoke(
-        app, ["run", str(tmp_path / "in"), "--format", "uos", "--out", str(tmp_path / "out"), "--relaxation", "lum"]
-    )
+    arguments = ["run", str(tmp_path / "in"), "--format", "uos", "--out", str(tmp_path / "out"), "--relaxation", "lum"]
+    result = CliRunner().invoke(app, [*arguments, "--residual-gate", "4"])
     assert result.exit_code == 0, result.output
     assert "6 scans registered" in result.output
     estimate = read_kitti_poses(tmp_path / "out" / "poses_kitti.txt")
@@ -258,6 +259,7 @@ def test_cli_run_writes_poses_frames_and_report(tmp_path) -> None:
     assert len(list((tmp_path / "out").glob("scan*.frames"))) == 6
     report = json.loads((tmp_path / "out" / "report.json").read_text())
     assert report["relaxation"] == "lum" and "registration" in report["stage_seconds"]
+    assert report["settings"]["residual_gate"] == 4.0  # the flag reached the engine
 
 
 def test_cli_run_refuses_bad_options_without_reading_every_scan(tmp_path, monkeypatch) -> None:
