@@ -40,7 +40,7 @@ import sys
 import tempfile
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import partial
 from pathlib import Path
 
@@ -385,6 +385,7 @@ def main() -> None:
     parser.add_argument("--scans", type=int, default=10)
     parser.add_argument("--balm-scans", type=int, default=30)
     parser.add_argument("--only", default="", help="run the cases whose name contains this")
+    parser.add_argument("--residual-gate", type=float, default=0.0, help="passed to slam6d run (docs/scale.md)")
     parser.add_argument("--methods", default=",".join(METHODS), help="comma-separated subset of the methods")
     parser.add_argument("--octree-timing", action="store_true", help="only time the octree search on a 100k pair")
     parser.add_argument(
@@ -405,6 +406,8 @@ def main() -> None:
         root = Path(tmp)
         cases = simulated_cases(root, args.sensors.split(","), seeds, scans, args.only) + real_cases(root, balm_scans)
         cases = [c for c in cases if args.only in c.name]
+        if args.residual_gate:
+            cases = [replace(c, run_args=[*c.run_args, "--residual-gate", str(args.residual_gate)]) for c in cases]
         print(f"{len(cases)} cases, {len(methods)} methods; success: error <= {SUCCESS_CM:g} cm ({load()})")
         header = f"{'case':42s}" + "".join(f" | {name:>24s}" for name in methods)
         if "slam6d run" in methods:

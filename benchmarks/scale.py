@@ -46,6 +46,16 @@ pairs the neighbour graph counted overlap for at the registered poses (its cost,
 * the effect: ``slam6d``'s sequential registration alone (no loops, no relaxation) over the same
   scans: per-step error RMS, and the ATE split into horizontal and vertical.
 
+``--step-bias`` instead measures, on each dense loop of ``--loop``, the bias of sequential
+registration along the motion (docs/scale.md, "Short steps: pairs off their planes"):
+
+* the cost: every consecutive pair matched from its TRUE relative pose by 15 point-to-plane steps
+  against the previous scan's registration model, every pair within the max distance kept and with
+  the residual gate (``PipelineConfig.residual_gate``); the mean error along the step;
+* the effect: sequential registration alone (no loops, no relaxation) with the gate off and on
+  (``--residual-gate``, default 4 here):
+  the ATE and the mean and summed error of the estimated steps along the true ones.
+
 ``--loop-report`` adds, after each campus run, where its error lies and what the loops did, from
 the files the run wrote and the simulator's ground truth: the ATE split into horizontal and
 vertical after registration, after loop closing and after relaxation; the revisits of the truth
@@ -72,7 +82,7 @@ import re
 import resource
 import subprocess
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -80,7 +90,7 @@ import numpy as np
 
 from slam6d import nn
 from slam6d.geometry import UOS, Matrix, invert, path_lengths, pose_difference, transform_points
-from slam6d.icp import point_to_plane_step
+from slam6d.icp import gate_residuals, point_to_plane_step
 from slam6d.io.frames import FrameType, read_frames
 from slam6d.io.poses import read_kitti_poses
 from slam6d.io.registry import read_sequence
@@ -372,14 +382,54 @@ def rms_row(name: str, errors: np.ndarray, extra: str = "") -> str:
     return f"| {name} | {roll:.3f}° | {pitch:.3f}° | {yaw:.3f}° | {dz:.2f} cm |{extra}"
 
 
-def from_truth(model: ModelIndex, data: np.ndarray, relative: Matrix, max_distance: float) -> Matrix:
-    """15 point-to-plane steps of ``data`` against ``model`` from the true relative pose (no stopping rule)."""
+def from_truth(model: ModelIndex, data: np.ndarray, relative: Matrix, max_distance: float, gate: float = 0.0) -> Matrix:
+    """15 point-to-plane steps of ``data`` against ``model`` from the true relative pose (no stopping
+    rule); ``gate`` > 0 leaves out the pairs as ``ICPConfig.residual_gate`` does."""
     transform = relative.copy()
     for _ in range(15):
         moved = transform_points(transform, data)
         found, partners, _, normals = model.plane_pairs(moved, max_distance)
+        if gate > 0:
+            found, partners, normals = gate_residuals(moved[found], found, partners, normals, gate)
         transform = point_to_plane_step(moved[found], partners, normals) @ transform
     return transform
+
+
+def along_steps(truth: list[Matrix], estimate: list[Matrix]) -> np.ndarray:
+    """Per consecutive pair: the estimated step's translation error along the true step (m), in the
+    earlier scan's frame; negative where the estimate falls short."""
+    errors = []
+    for k in range(1, len(truth)):
+        step = invert(truth[k - 1]) @ truth[k]
+        error = invert(step) @ invert(estimate[k - 1]) @ estimate[k]
+        errors.append(float(error[:3, 3] @ step[:3, 3]) / float(np.linalg.norm(step[:3, 3])))
+    return np.array(errors)
+
+
+def step_bias(work: Path, scans: int, gate_on: float) -> None:
+    """The ``--step-bias`` rows of one dense loop (see the module docstring)."""
+    directory = session(work, "loop", scans)
+    sequence = read_sequence(directory, "uos")
+    truth = [UOS.pose_to_canonical(p) for p in read_kitti_poses(directory / "ground_truth_kitti.txt")]
+    config = PipelineConfig(loops=False, relaxation="none")
+    lengths = [float(np.linalg.norm((invert(truth[k - 1]) @ truth[k])[:3, 3])) for k in range(1, scans)]
+    for gate in (0.0, gate_on):
+        run = Pipeline(sequence, replace(config, residual_gate=gate))
+        run.run()
+        pulls = []
+        for k in range(1, scans):
+            reduced = run.reduced_points(k)
+            data = reduced[reduce_points(reduced, config.data_voxel_size)]
+            relative = invert(truth[k - 1]) @ truth[k]
+            fitted = from_truth(run.registration_model(k - 1), data, relative, config.icp.max_distance, gate)
+            pulls.append(along_steps([np.eye(4), relative], [np.eye(4), fitted])[0])
+        along = along_steps(truth, [np.asarray(p) for p in run.poses])
+        ate = 100 * absolute_trajectory_error(run.poses, truth).rmse
+        print(
+            f"| {scans} | {100 * np.mean(lengths):.1f} cm | {gate:g} | {100 * np.mean(pulls):+.3f} cm"
+            f" | {100 * np.mean(along):+.3f} cm | {100 * np.sum(along):+.1f} cm | {ate:.2f} cm |",
+            flush=True,
+        )
 
 
 def per_step(work: Path, scans: int) -> None:
@@ -480,9 +530,18 @@ def main() -> None:
     parser.add_argument("--memory-budget", help="passed to slam6d run (e.g. 2GB)")
     parser.add_argument("--scheduler", help="also run on this Dask scheduler (e.g. local:2) and compare")
     parser.add_argument(
+        "--residual-gate",
+        type=float,
+        default=0.0,
+        help="passed to slam6d run (e.g. 4); with --step-bias the gate compared with none (default 4)",
+    )
+    parser.add_argument(
         "--profile-relaxation", action="store_true", help="profile LUM relaxation on the sessions instead"
     )
     parser.add_argument("--per-step", type=int, metavar="N", help="only the campus's per-step error tables on N scans")
+    parser.add_argument(
+        "--step-bias", action="store_true", help="only: the dense loops' bias along each step, gate off and on"
+    )
     parser.add_argument(
         "--loop-report", action="store_true", help="after each campus run: its error by stage, revisits and loops"
     )
@@ -510,7 +569,16 @@ def main() -> None:
     if args.per_step:
         per_step(args.work, args.per_step)
         return
+    if args.step_bias:
+        print("dense loop: error along each step (negative: short), from the truth and by sequential registration")
+        print("| scans | step | residual gate | from the truth, mean | registration, mean | summed | ATE |")
+        print("|---|---|---|---|---|---|---|")
+        for scans in args.loop:
+            step_bias(args.work, scans, args.residual_gate or 4.0)
+        return
     extra = ["--memory-budget", args.memory_budget] if args.memory_budget else []
+    if args.residual_gate:
+        extra += ["--residual-gate", str(args.residual_gate)]
     print(f"slam6d run, {os.cpu_count()} cores; load average before: {os.getloadavg()[0]:.1f}")
     print("| case | scans | wall | CPU | stages | neighbour pairs | peak memory | ATE | ATE before relaxation | load |")
     print("|---|---|---|---|---|---|---|---|---|---|")

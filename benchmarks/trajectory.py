@@ -438,7 +438,7 @@ def simulated(directory: Path, peers: bool, only: str | None, method: str, repea
         run_peers(sequence, quality, only)
 
 
-def balm(peers: bool, only: str | None, method: str) -> None:
+def balm(peers: bool, only: str | None, method: str, residual_gate: float = 0.0) -> None:
     sequence, reference = balm_sequence()
 
     check = SelfConsistency(sequence, reference)
@@ -449,7 +449,7 @@ def balm(peers: bool, only: str | None, method: str) -> None:
 
     print("balm_hall (89 scans, drifted odometry seed 1)")
     began = time.perf_counter()
-    config = PipelineConfig(icp=ICPConfig(method=method))
+    config = PipelineConfig(icp=ICPConfig(method=method), residual_gate=residual_gate)
     pipeline = Pipeline(sequence, config)
     report = pipeline.run()
     wall = time.perf_counter() - began
@@ -545,6 +545,9 @@ def main() -> None:
     parser.add_argument("--peers", action="store_true", help="also run small_gicp, gtsam, open3d, KISS-ICP")
     parser.add_argument("--only", help="run only the peers whose name contains this text")
     parser.add_argument("--method", default="point_to_plane", help="slam6d ICP method")
+    parser.add_argument(
+        "--residual-gate", type=float, default=0.0, help="slam6d's PipelineConfig.residual_gate on BALM (docs/scale.md)"
+    )
     parser.add_argument("--relax-graph", action="store_true", help="10,000-pose graph: ours vs gtsam")
     parser.add_argument("--repeats", type=int, default=5, help="runs of `slam6d run` on --sim (median quoted)")
     args = parser.parse_args()
@@ -553,7 +556,7 @@ def main() -> None:
     if args.sim:
         simulated(args.sim, args.peers, args.only, args.method, args.repeats)
     if args.balm:
-        balm(args.peers, args.only, args.method)
+        balm(args.peers, args.only, args.method, args.residual_gate)
     if args.relax_graph:
         relax_graph()
 

@@ -406,6 +406,14 @@ def run(
             " session's simulation.json), else none; 0 = ignore a declared one."
         ),
     ] = None,
+    residual_gate: Annotated[
+        float,
+        typer.Option(
+            help="Sequential ICP leaves out pairs more than this many robust standard deviations off their"
+            " plane once it has converged with all of them (0 = keep every pair; 4 removes the pull of short"
+            " steps towards zero motion, docs/scale.md)."
+        ),
+    ] = 0.0,
 ) -> None:
     """Register a whole sequence: sequential ICP, loop closing, global relaxation; write the trajectory."""
     import time
@@ -445,6 +453,7 @@ def run(
                 "loop_closing": loop_closing,
                 "relaxation": relaxation,
                 "tilt_noise_deg": tilt,
+                "residual_gate": residual_gate,
             }
         )
 

@@ -107,6 +107,25 @@ def test_far_outliers_are_rejected_by_the_max_distance(method: str, model_index:
     assert pose_difference(unbounded.transform, MOTION)[0] > 0.05
 
 
+def test_residual_gate_leaves_out_pairs_off_their_planes_and_still_counts_them(
+    model_index: ModelIndex, model: np.ndarray
+) -> None:
+    """Points within the max distance of a wall but 12-18 cm in front of it (what a wrong model plane
+    or a surface the model never saw pairs like) pull point-to-plane ICP towards them when kept;
+    ``residual_gate`` leaves them out of the steps, and the fitness still counts them as paired."""
+    rng = np.random.default_rng(4)
+    wall = model[np.abs(model[:, 0] - 5.0) < 1e-9]  # the room's x = 5 m wall
+    near = wall[rng.choice(len(wall), 200, replace=False)]
+    near[:, 0] -= rng.uniform(0.12, 0.18, len(near))
+    data = np.vstack([copy_of(model), copy_of(near)])
+    config = ICPConfig(distance_schedule=(1.0, 0.5), max_iterations=200, data_voxel_size=0.0)
+    kept = icp(model_index, data, np.eye(4), config)
+    gated = icp(model_index, data, np.eye(4), replace(config, residual_gate=3.0))
+    assert pose_difference(kept.transform, MOTION)[0] > 0.005  # dragged by the near points
+    assert_pose_close(gated.transform, MOTION, 1e-4, 0.01)
+    assert gated.pairs == kept.pairs == len(data)
+
+
 def test_iteration_cap_is_respected_and_reported(model_index: ModelIndex, model: np.ndarray) -> None:
     config = ICPConfig(method="point_to_point", max_iterations=3)
     result = icp(model_index, copy_of(model), np.eye(4), config)
@@ -176,6 +195,7 @@ def test_distance_schedule_is_used_coarse_to_fine(model_index: ModelIndex, model
         ({"distance_schedule": (1.0, 0.1)}, "below max_distance"),
         ({"max_iterations": 0}, "max_iterations"),
         ({"max_distance": -1.0}, "max_distance"),
+        ({"residual_gate": -1.0}, "residual_gate"),
     ],
 )
 def test_bad_config_is_refused(kwargs: dict, message: str) -> None:
