@@ -516,7 +516,7 @@ def lum_relaxation(
     by more than ``settle_fraction`` of that scale, or changed the robust cost by less than
     ``chi2_tolerance``), otherwise one more query at the final poses. ``links`` (scan pairs
     registered one onto the other) stay in the graph with any point pairs at all
-    (:func:`slam6d.relax.neighbour_pairs`). ``tilt`` (:class:`slam6d.attitude.TiltPrior`): the
+    (:func:`slam6d.relax.neighbour_graph`). ``tilt`` (:class:`slam6d.attitude.TiltPrior`): the
     scans' measured up (an inclinometer), a prior on each free scan's roll and pitch.
     """
     began = time.perf_counter()

@@ -9,7 +9,7 @@ Two methods, both over the same neighbour graph (scans whose reduced clouds shar
   current poses and solves one linear system for all poses at once.
 
 This module holds what both share: their settings and result, each scan's model built once
-(:class:`ScanModels`), the neighbour graph (:func:`neighbour_pairs`), the residual both report, and
+(:class:`ScanModels`), the neighbour graph (:func:`neighbour_graph`), the residual both report, and
 :func:`carry_forward`. Residuals are reported before and after as the RMS point-to-plane distance
 of sampled data points paired within the ICP max distance with their neighbour scan (the quantity
 both methods reduce). Not the closest-point distance: between sparse scans that reads the point
@@ -50,7 +50,6 @@ __all__ = [
     "ScanModels",
     "carry_forward",
     "neighbour_graph",
-    "neighbour_pairs",
     "pair_residual",
 ]
 
@@ -203,19 +202,6 @@ def by_model(pairs: Sequence[NeighbourPair]) -> dict[int, list[int]]:
     for pair in pairs:
         grouped.setdefault(pair.i, []).append(pair.j)
     return grouped
-
-
-def neighbour_pairs(
-    models: ScanModels,
-    poses: Sequence[Matrix],
-    min_pairs: int = 250,
-    members: Iterable[int] | None = None,
-    sample: int = 200,
-    links: Iterable[tuple[int, int]] = (),
-    per_scan: int = 0,
-) -> list[NeighbourPair]:
-    """The pairs of :func:`neighbour_graph` (the same arguments)."""
-    return neighbour_graph(models, poses, min_pairs, members, sample, links, per_scan).pairs
 
 
 @dataclass(frozen=True)
@@ -538,12 +524,14 @@ def set_up(
 ) -> tuple[list[Matrix], list[Matrix], list[int], set[int], list[NeighbourPair]]:
     """What both relaxations start from: poses before and working copies, the scans taking part,
     the fixed ones among them (the first member when none is), and the overlapping pairs (``links``:
-    see :func:`neighbour_pairs`)."""
+    see :func:`neighbour_graph`)."""
     before = [np.array(p) for p in poses]
     current = [np.array(p) for p in poses]
     chosen = sorted(set(range(len(models))) if members is None else set(members))
     fixed_set = {f for f in fixed if f in chosen} or {chosen[0]}
-    graph = neighbour_pairs(models, current, config.min_pairs, chosen, links=links, per_scan=config.neighbours_per_scan)
+    graph = neighbour_graph(
+        models, current, config.min_pairs, chosen, links=links, per_scan=config.neighbours_per_scan
+    ).pairs
     return before, current, chosen, fixed_set, graph
 
 

@@ -32,7 +32,7 @@ from slam6d.icp import FloatArray, ICPConfig
 from slam6d.lum import lum_relaxation
 from slam6d.octree import reduce_points
 from slam6d.posegraph import connected_components
-from slam6d.relax import Progress, RelaxationConfig, RelaxationResult, ScanModels, neighbour_pairs
+from slam6d.relax import Progress, RelaxationConfig, RelaxationResult, ScanModels, neighbour_graph
 from slam6d.simultaneous import simultaneous_matching
 
 if TYPE_CHECKING:
@@ -130,7 +130,7 @@ def relaxation_components(
     components ordered by their first scan; one component when relaxation can tie every scan together).
 
     ``graph`` relaxes over ``edges``; ``lum`` and ``simultaneous`` over the overlapping pairs they
-    find at the current poses (:func:`slam6d.relax.neighbour_pairs` with the relaxation's own
+    find at the current poses (:func:`slam6d.relax.neighbour_graph` with the relaxation's own
     criterion and bound) plus ``links``. These are the components a relaxation refuses (or relaxes
     one by one in ``slam6d run``), so an operator can see before relaxing which pieces need a bridge.
     ``models`` may be None for ``graph``, which needs no scan (a caller spares building them).
@@ -140,7 +140,7 @@ def relaxation_components(
     elif method in ("lum", "simultaneous"):
         if models is None:
             raise Slam6dError(f"{method} finds its graph from the scans: their models are needed")
-        found = neighbour_pairs(models, poses, config.min_pairs, links=links, per_scan=config.neighbours_per_scan)
+        found = neighbour_graph(models, poses, config.min_pairs, links=links, per_scan=config.neighbours_per_scan).pairs
         pairs = [(p.i, p.j) for p in found]
     else:
         raise Slam6dError(f"unknown relaxation '{method}'; known: {', '.join(RELAXATION_METHODS)}")

@@ -20,7 +20,6 @@ from slam6d.relax import (
     ScanModels,
     carry_forward,
     neighbour_graph,
-    neighbour_pairs,
     pair_residual,
 )
 from slam6d.simultaneous import simultaneous_matching
@@ -183,12 +182,12 @@ def test_relaxation_pulls_perturbed_scans_back_to_the_truth(loop_scans, method: 
 
 def test_neighbours_need_overlap(loop_scans) -> None:  # type: ignore[no-untyped-def]
     sim, models = loop_scans
-    pairs = neighbour_pairs(models, sim.truth, min_pairs=250)
+    pairs = neighbour_graph(models, sim.truth, min_pairs=250).pairs
     linked = {(p.i, p.j) for p in pairs}
     assert all((k, k + 1) in linked for k in range(9))
     moved = [p.copy() for p in sim.truth]
     moved[5] = make_pose(np.eye(3), [500.0, 0, 0]) @ moved[5]
-    assert not any(5 in (p.i, p.j) for p in neighbour_pairs(models, moved, min_pairs=250))
+    assert not any(5 in (p.i, p.j) for p in neighbour_graph(models, moved, min_pairs=250).pairs)
     with pytest.raises(RelaxationError, match=r"disconnected.*5"):
         lum_relaxation(models, moved, fixed=[0])
 
@@ -199,7 +198,7 @@ def test_lum_budget_grows_with_the_graph_and_weights_pairs_by_overlap(loop_scans
     from slam6d.lum import _edge_budget
 
     sim, models = loop_scans
-    pairs = neighbour_pairs(models, sim.truth, min_pairs=250)
+    pairs = neighbour_graph(models, sim.truth, min_pairs=250).pairs
     config = RelaxationConfig(pair_points=300, overlap_exponent=exponent, min_edge_points=1, edge_points=10**6)
     budget = _edge_budget(models, pairs, config)
     assert sum(c for c, _ in budget.values()) == pytest.approx(300 * len(pairs), rel=0.02)
@@ -370,8 +369,8 @@ def test_bounded_neighbour_graph_stays_connected_within_its_bound(scans: int) ->
     most per_scan x scans pairs) and the graph stays one piece, with the loop's closing pairs in it."""
     sim, models = _dense_loop(scans)
     per_scan = 6
-    every = neighbour_pairs(models, sim.truth, min_pairs=100)
-    bounded = neighbour_pairs(models, sim.truth, min_pairs=100, per_scan=per_scan)
+    every = neighbour_graph(models, sim.truth, min_pairs=100).pairs
+    bounded = neighbour_graph(models, sim.truth, min_pairs=100, per_scan=per_scan).pairs
     assert len(bounded) <= per_scan * scans
     assert all(p.pairs > 100 and p.i < p.j for p in bounded)
     assert _components(scans, bounded) == 1
