@@ -33,7 +33,7 @@ from __future__ import annotations
 import math
 import os
 import time
-from collections.abc import Callable, Generator, Iterator
+from collections.abc import Callable, Generator, Iterator, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from functools import partial
@@ -1070,14 +1070,21 @@ class Pipeline:
         )
 
 
+def holds_inclinometer(config: PipelineConfig, has_odometry: Sequence[bool]) -> bool:
+    """Whether registration, relaxation and loop closing hold the scans' tilt to the odometry's
+    readings: ``config.tilt_noise_deg`` declares an inclinometer and some scan's file carried a pose."""
+    return config.tilt_noise_deg is not None and any(has_odometry)
+
+
 def inclinometer_prior(config: PipelineConfig, odometry: list[Matrix], has_odometry: list[bool]) -> TiltPrior | None:
     """The odometry's roll and pitch as an inclinometer's readings (:class:`slam6d.attitude.TiltPrior`)
     where ``config.tilt_noise_deg`` says the odometry carries one and some scan has odometry; None
     otherwise. Every scan is weighed as one finding its planes alone until
     :func:`registration_tilt_deg` says how it was registered."""
-    if config.tilt_noise_deg is None or not any(has_odometry):
+    noise = config.tilt_noise_deg
+    if noise is None or not holds_inclinometer(config, has_odometry):
         return None
-    return TiltPrior.from_poses(odometry, has_odometry, config.tilt_noise_deg, config.registration_tilt_deg)
+    return TiltPrior.from_poses(odometry, has_odometry, noise, config.registration_tilt_deg)
 
 
 def registration_model(shared: ModelIndex, config: PipelineConfig) -> ModelIndex:

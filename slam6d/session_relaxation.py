@@ -35,6 +35,7 @@ from slam6d.loops import LoopHypothesis, diffuse_loop_correction, loop_correctio
 from slam6d.pipeline import (
     PipelineConfig,
     fuses_scans,
+    holds_inclinometer,
     inclinometer_prior,
     needs_fusing,
     registration_model,
@@ -88,7 +89,7 @@ def registration_readings(session: Session, config: PipelineConfig, measured: Se
     where ``config`` declares an inclinometer and some scan carried a pose, else None (nothing to
     hold). A workbench run starts from the session's head, whose poses are an earlier run's
     estimate: taken for the readings, they would hold every scan to the tilt that run reached."""
-    if config.tilt_noise_deg is None or not any(measured):
+    if not holds_inclinometer(config, measured):
         return None
     return session_readings(session, measured)
 

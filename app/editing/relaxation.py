@@ -18,6 +18,7 @@ from app.editing.context import EditContext
 from app.jobs import Cancel, Progress, Work
 from app.workbench import EditError
 from slam6d.loops import LoopHypothesis
+from slam6d.pipeline import holds_inclinometer
 from slam6d.posegraph import check_connected
 from slam6d.relaxation_methods import RELAXATION_METHODS
 from slam6d.residuals import displacements
@@ -41,7 +42,7 @@ class Relaxation:
             start = context.workbench.head(session_id)  # the revision this job works from
             before = list(start.poses)
             scans = context.workbench.state(session_id).sequence().scans
-            keep_tilt = context.config(session_id).tilt_noise_deg is not None and any(s.has_pose for s in scans)
+            keep_tilt = holds_inclinometer(context.config(session_id), [s.has_pose for s in scans])
             hypotheses = [LoopHypothesis(e["i"], e["j"], 0.0, 0.0, transform=np.asarray(e["transform"])) for e in loops]
             poses = close_revision_loops(
                 before, hypotheses, keep_tilt, cancel, lambda done, total: progress("closing loops", done, total)
