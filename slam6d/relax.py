@@ -21,6 +21,7 @@ the trajectory continuous.
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
@@ -75,6 +76,15 @@ class RelaxationConfig:
     robust_scale: float = 0.05  # metres: final Cauchy scale of the LUM point-to-plane residuals (0 = least squares)
     coarse_fraction: float = 0.25  # LUM's first rounds sample this share of pair_points (1 = all rounds at full)
     coarse_chi2_tolerance: float = 0.05  # until a round changes their robust cost less: then the full sample
+
+    def __post_init__(self) -> None:
+        # a share above 1 would silently mean "every round on the full sample"; say so instead
+        if not 0 < self.coarse_fraction <= 1:
+            raise ValueError(
+                f"coarse_fraction must be in (0, 1] (1 = every round on the full sample), got {self.coarse_fraction}"
+            )
+        if not (self.coarse_chi2_tolerance >= 0 and math.isfinite(self.coarse_chi2_tolerance)):
+            raise ValueError(f"coarse_chi2_tolerance must be a fraction >= 0, got {self.coarse_chi2_tolerance}")
 
 
 @dataclass
@@ -377,6 +387,7 @@ class _ScanOnPath:
         return np.floor((np.arctan2(d[:, 1], d[:, 0]) + np.pi) / (2 * np.pi) * SECTORS).astype(np.int64) % SECTORS
 
     def gaps(self, others: NDArray[np.int64]) -> FloatArray:
+        """How far each of ``others`` lies from scan i (metres): the order within a path stretch."""
         return np.linalg.norm(self.positions[others] - self.positions[self.i], axis=1)
 
 

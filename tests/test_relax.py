@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from slam6d.engine_settings import SettingsError, pipeline_config
 from slam6d.errors import RelaxationError
 from slam6d.geometry import invert, make_pose, pose_difference, pose_from_xyzrpy, so3_exp, so3_log
 from slam6d.icp import ICPConfig
@@ -478,3 +479,13 @@ def test_lum_damping_holds_only_the_directions_a_scan_leaves_unconstrained() -> 
     # nothing is added where the wall holds the scan: across it, and tilting it about y and z
     held = np.linalg.eigh(flat)[1][:, 3:]
     np.testing.assert_allclose(held.T @ added @ held, 0.0, atol=1e-9 * np.abs(flat).max())
+
+
+@pytest.mark.parametrize(
+    ("field", "value"), [("coarse_fraction", 0.0), ("coarse_fraction", 3.0), ("coarse_chi2_tolerance", -0.1)]
+)
+def test_a_thin_sample_setting_out_of_range_is_refused_naming_the_field(field: str, value: float) -> None:
+    """A session's ``[engine] relax = {coarse_fraction = 3}`` would otherwise mean "every round on the
+    full sample" without a word: the settings say which field is wrong instead."""
+    with pytest.raises(SettingsError, match=field):
+        pipeline_config({"relax": {field: value}})
