@@ -29,12 +29,9 @@ the same load); its kernels are compiled by a first run of each that is not coun
 from __future__ import annotations
 
 import argparse
-import compileall
 import json
 import os
-import resource
 import statistics
-import subprocess
 import sys
 import tempfile
 import time
@@ -49,6 +46,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from benchmarks.child_process import CHAIN_STARTUP, add_against_option, checkouts, timed_command  # noqa: E402
 from benchmarks.trajectory import load, small_gicp_chained  # noqa: E402
 from slam6d.geometry import UOS, Matrix  # noqa: E402
 from slam6d.io.poses import read_kitti_poses  # noqa: E402
@@ -64,25 +62,6 @@ SESSIONS = {
     ),
 }
 
-CHAIN_STARTUP = "import numpy as np, small_gicp; small_gicp.PointCloud(np.zeros((10, 3)))"
-"""What a script running the chain as its own command pays before its first scan. Its reading and
-chaining are timed in this process, with the reader ``slam6d run`` uses (compiled parsing: a chain
-script importing that reader would pay numba's import as well, which would flatter the run)."""
-
-
-def children_cpu() -> float:
-    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return usage.ru_utime + usage.ru_stime
-
-
-def timed_command(command: list[str], tree: Path = ROOT) -> tuple[float, float]:
-    """Wall and CPU seconds of one child process on the engine in ``tree`` (it must succeed)."""
-    wall, cpu = time.perf_counter(), children_cpu()
-    done = subprocess.run(command, capture_output=True, text=True, env=os.environ | {"PYTHONPATH": str(tree)})
-    if done.returncode != 0:
-        raise RuntimeError(f"{command[:4]} exit {done.returncode}: {done.stderr[-2000:]}")
-    return time.perf_counter() - wall, children_cpu() - cpu
-
 
 def ate_cm(poses: list[Matrix], truth: list[Matrix]) -> float:
     return 100 * absolute_trajectory_error(poses, truth).rmse
@@ -97,16 +76,9 @@ def main() -> None:
     parser.add_argument("--sessions", default=",".join(SESSIONS))
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--keep", type=Path, help="simulate into (and reuse) this folder instead of a temporary one")
-    parser.add_argument(
-        "--against",
-        type=Path,
-        help="another checkout (git worktree add ../before COMMIT) whose `slam6d run` is timed in alternation"
-        " with this one's, run by run, so both see the same load",
-    )
+    add_against_option(parser, "`slam6d run`")
     args = parser.parse_args()
-    trees = [ROOT] if args.against is None else [ROOT, args.against.resolve()]
-    for tree in trees:  # as an install writes it (PYTHONDONTWRITEBYTECODE)
-        compileall.compile_dir(tree / "slam6d", quiet=1)
+    trees = checkouts(args.against)
     with tempfile.TemporaryDirectory() as tmp:
         root = args.keep or Path(tmp)
         print(f"{load()}; median of {args.repeats}, CPU = user + system")

@@ -30,10 +30,8 @@ map whatever the reference. Success: error <= 5 cm (bunny: 1 mm) and the method 
 from __future__ import annotations
 
 import argparse
-import compileall
 import json
 import os
-import resource
 import shutil
 import subprocess
 import sys
@@ -49,6 +47,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from benchmarks.child_process import CHAIN_STARTUP, checkouts, children_cpu, timed_command  # noqa: E402
 from benchmarks.startup import FIRST_CALL  # noqa: E402
 from benchmarks.trajectory import kiss_icp, load, small_gicp_chained, small_gicp_gtsam  # noqa: E402
 from slam6d.drift import drifted_odometry  # noqa: E402
@@ -157,9 +156,6 @@ RUN_STARTUP = f"import slam6d.cli, slam6d.pipeline, slam6d.io.registry\n{FIRST_C
 engine's imports (numpy, numba) and numba's first call (its compiler registries, scipy's BLAS
 bindings loaded alone before it as the command does; the kernels then load from the cache)."""
 
-CHAIN_STARTUP = "import numpy as np, small_gicp; small_gicp.PointCloud(np.zeros((10, 3)))"
-"""What a script running the small_gicp chain as its own command pays before its first scan."""
-
 
 def startup_cpu(code: str) -> float:
     """CPU seconds a fresh Python process spends on ``code`` (the least of two runs).
@@ -167,18 +163,8 @@ def startup_cpu(code: str) -> float:
     The chain runs in this process, where small_gicp is imported already, while each ``slam6d run``
     is a new process; so the run / chain ratio is printed as measured, without the run's start-up,
     and with both as commands (the chain's script paying its own interpreter and imports)."""
-    costs = []
-    for _ in range(2):  # the first may recompile kernels whose cached code is stale (an edited module)
-        before = children_cpu()
-        subprocess.run([sys.executable, "-c", code], check=True, env=os.environ | {"PYTHONPATH": str(ROOT)})
-        costs.append(children_cpu() - before)
-    return min(costs)
-
-
-def children_cpu() -> float:
-    """CPU seconds (user + system) of the finished child processes so far: ``slam6d run``'s share."""
-    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return usage.ru_utime + usage.ru_stime
+    # the first may recompile kernels whose cached code is stale (an edited module)
+    return min(timed_command([sys.executable, "-c", code]).cpu for _ in range(2))
 
 
 METHODS: dict[str, Callable[[Case], list[Matrix]]] = {
@@ -417,7 +403,7 @@ def main() -> None:
         if "slam6d run" in methods:
             # the engine's bytecode, as installing the package (or `make bytecode`) writes it: where
             # PYTHONDONTWRITEBYTECODE is set, each run would compile the sources again (~0.08 s CPU)
-            compileall.compile_dir(ROOT / "slam6d", quiet=1)
+            checkouts(None)
         startup = startup_cpu(RUN_STARTUP) if "slam6d run" in methods else 0.0
         chain_startup = startup_cpu(CHAIN_STARTUP) if "slam6d run" in methods else 0.0
         print(header)

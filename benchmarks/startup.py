@@ -28,19 +28,15 @@ this one, each process of one followed by the same process of the other, so both
 from __future__ import annotations
 
 import argparse
-import compileall
-import os
-import resource
 import statistics
-import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from benchmarks.child_process import add_against_option, checkouts, timed_command  # noqa: E402
 from benchmarks.trajectory import load  # noqa: E402
 
 FIRST_CALL = """
@@ -75,39 +71,19 @@ def phases(session: Path, out: Path) -> list[tuple[str, str]]:
     ]
 
 
-def children_cpu() -> float:
-    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return usage.ru_utime + usage.ru_stime
-
-
-def cost_of(command: list[str], tree: Path) -> tuple[float, float]:
-    """CPU seconds (user + system) and wall seconds of one process running ``command`` on the engine
-    in ``tree``."""
-    before, began = children_cpu(), time.perf_counter()
-    subprocess.run(command, check=True, capture_output=True, cwd=tree, env=os.environ | {"PYTHONPATH": str(tree)})
-    return children_cpu() - before, time.perf_counter() - began
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--repeats", type=int, default=7, help="processes per phase (the median is shown)")
-    parser.add_argument(
-        "--against",
-        type=Path,
-        help="another checkout (git worktree add ../before COMMIT): measured in alternation with this one,"
-        " process by process, for a before/after table at the same load",
-    )
+    add_against_option(parser, "start-up")
     args = parser.parse_args()
-    trees = [ROOT] if args.against is None else [ROOT, args.against.resolve()]
-    for tree in trees:
-        compileall.compile_dir(tree / "slam6d", quiet=1)
+    trees = checkouts(args.against)
     with tempfile.TemporaryDirectory() as tmp:
         session, out = Path(tmp) / "session", Path(tmp) / "out"
         simulate = ["simulate", str(session), "--world", "outdoor", "--sensor", "vlp16", "--scans", "10", "--seed", "1"]
-        cost_of([sys.executable, "-m", "slam6d.cli", *simulate, "--no-odometry"], ROOT)
+        timed_command([sys.executable, "-m", "slam6d.cli", *simulate, "--no-odometry"], ROOT)
         run = [sys.executable, "-m", "slam6d.cli", "run", str(session), "--format", "uos", "--out", str(out)]
         for tree in trees:
-            cost_of(run, tree)  # compiles any kernel not cached yet
+            timed_command(run, tree)  # compiles any kernel not cached yet
         steps = phases(session, out)
         commands = [[sys.executable, "-c", "\n".join(code for _, code in steps[: k + 1])] for k in range(len(steps))]
         commands.append(run)
@@ -117,9 +93,9 @@ def main() -> None:
         for _ in range(args.repeats):
             for k, command in enumerate(commands):
                 for t, tree in enumerate(trees):
-                    seconds = cost_of(command, tree)
-                    cpu[t][k].append(seconds[0])
-                    wall[t][k].append(seconds[1])
+                    cost = timed_command(command, tree)
+                    cpu[t][k].append(cost.cpu)
+                    wall[t][k].append(cost.wall)
     print(f"Seconds of a fresh process, median of {args.repeats} ({load()})")
     for t, tree in enumerate(trees):
         cpu_medians = [statistics.median(c) for c in cpu[t]]

@@ -39,6 +39,15 @@ _REPORT_MODULES = (
 )
 
 
+def python_result(code: str) -> dict[str, object]:
+    """What a fresh Python process running ``code`` printed as JSON on its last line: a check of what
+    a process imports has to start from one that has imported nothing yet."""
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=300)
+    assert done.returncode == 0, done.stderr
+    result: dict[str, object] = json.loads(done.stdout.strip().splitlines()[-1])
+    return result
+
+
 def loaded_by(*args: str) -> set[str]:
     """The heavy modules a `slam6d ARGS...` process had loaded when the command finished."""
     done = subprocess.run(

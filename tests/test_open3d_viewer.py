@@ -5,11 +5,7 @@ Each check runs in a fresh process: what a process has imported is the behaviour
 
 from __future__ import annotations
 
-import json
-import subprocess
-import sys
-
-from tests.cli_process import ROOT
+from tests.cli_process import python_result
 
 _FEATURE_GUESS_THEN_VIEWER = """
 import json, sys
@@ -43,15 +39,8 @@ print(json.dumps({
 """
 
 
-def _run(code: str) -> dict[str, object]:
-    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=300)
-    assert done.returncode == 0, done.stderr
-    result: dict[str, object] = json.loads(done.stdout.strip().splitlines()[-1])
-    return result
-
-
 def test_the_feature_guess_loads_open3d_without_dash_and_the_viewer_loads_on_first_use() -> None:
-    result = _run(_FEATURE_GUESS_THEN_VIEWER)
+    result = python_result(_FEATURE_GUESS_THEN_VIEWER)
     assert result["after_guess"] == {"open3d": True, "dash": False, "plotly": False}
     # the guess itself worked: the data, the model moved by +0.3 m in x, goes back by about that
     assert abs(float(result["moved_x"]) + 0.3) < 0.15  # type: ignore[arg-type]
@@ -69,7 +58,7 @@ def test_simulating_loads_no_dash() -> None:
         "    simulate_session(Path(tmp) / 's', SimulationConfig(seed=1, scans=2, sensor='vlp16', world='indoor'))\n"
         "print(json.dumps({m: m in sys.modules for m in ('open3d', 'dash', 'plotly')}))"
     )
-    assert _run(code) == {"open3d": True, "dash": False, "plotly": False}
+    assert python_result(code) == {"open3d": True, "dash": False, "plotly": False}
 
 
 def test_an_open3d_loaded_already_is_left_alone() -> None:
@@ -79,4 +68,4 @@ def test_an_open3d_loaded_already_is_left_alone() -> None:
         "print(json.dumps({'deferred': defer_plotly_viewer(), 'same': sys.modules[VIEWER] is before,"
         " 'dash': 'dash' in sys.modules}))"
     )
-    assert _run(code) == {"deferred": False, "same": True, "dash": True}
+    assert python_result(code) == {"deferred": False, "same": True, "dash": True}

@@ -10,12 +10,11 @@ scipy's spatial and sparse modules, open3d (the feature guess), Dask (``--schedu
 
 from __future__ import annotations
 
-import json
 import subprocess
 import sys
 from pathlib import Path
 
-from tests.cli_process import HEAVY, ROOT, loaded_by
+from tests.cli_process import HEAVY, ROOT, loaded_by, python_result
 
 
 def test_importing_the_command_line_loads_no_numerics() -> None:
@@ -73,15 +72,8 @@ print(json.dumps({
 """
 
 
-def _run_python(code: str) -> dict[str, object]:
-    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=300)
-    assert done.returncode == 0, done.stderr
-    result: dict[str, object] = json.loads(done.stdout.strip().splitlines()[-1])
-    return result
-
-
 def test_numba_gets_its_blas_without_the_scipy_linalg_package() -> None:
-    result = _run_python(_BLAS_WITHOUT_LINALG)
+    result = python_result(_BLAS_WITHOUT_LINALG)
     assert result["loaded"] is True and result["again"] is False
     assert result["linalg_before"] is False  # numba's first call (a compilation, even) left it out
     assert result["numba_has_blas"] is True and result["dot_ok"] is True
@@ -96,4 +88,4 @@ def test_the_bindings_are_left_alone_once_scipy_linalg_is_loaded() -> None:
         "before = sys.modules.get(BLAS_BINDINGS); loaded = load_blas_bindings(); "
         "print(json.dumps({'loaded': loaded, 'untouched': sys.modules.get(BLAS_BINDINGS) is before}))"
     )
-    assert _run_python(code) == {"loaded": False, "untouched": True}
+    assert python_result(code) == {"loaded": False, "untouched": True}
