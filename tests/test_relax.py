@@ -355,6 +355,46 @@ def test_lum_thin_first_rounds_change_the_path_not_where_it_converges(
     assert abs(thin_error - full_error) < 0.0001, (thin_error, full_error)
 
 
+@pytest.mark.parametrize(("offset", "angle"), [(0.02, 0.2), (0.08, 0.8)])
+def test_lum_settled_on_movement_ends_where_full_sample_rounds_end(
+    loop_scans,  # type: ignore[no-untyped-def]
+    monkeypatch,  # type: ignore[no-untyped-def]
+    offset: float,
+    angle: float,
+) -> None:
+    """``settle_on="movement"`` ends the rounds once they move the scans by less than ``tolerance``
+    on average, so the thin first rounds only save time: the relaxation ends within 1 mm (mean over
+    the scans of the largest displacement of a scan's points) of one with every round on the full
+    sample, in fewer rounds on the full sample. Settled on the robust cost (the default) the two end
+    2.1 and 1.7 mm apart here (docs/scale.md, "Where the rounds stop")."""
+    import slam6d.lum as lum
+
+    sim, models = loop_scans
+    rng = np.random.default_rng(5)
+    start = [sim.truth[0]] + [_noisy(p, rng, offset, np.radians(angle)) for p in sim.truth[1:]]
+    queried: list[int] = []
+    joint_step = lum._joint_step
+
+    def counted(models, current, batches, *args, **kwargs):  # type: ignore[no-untyped-def]
+        queried.append(sum(len(b.points) for b in batches))
+        return joint_step(models, current, batches, *args, **kwargs)
+
+    monkeypatch.setattr(lum, "_joint_step", counted)
+    config = RelaxationConfig(settle_on="movement")
+    thin = lum_relaxation(models, start, fixed=[0], config=config)
+    full_size = max(queried)
+    thin_rounds = [n for n in queried if n < full_size]
+    assert len(thin_rounds) >= 2 and queried == thin_rounds + [full_size] * (thin.iterations - len(thin_rounds))
+    queried.clear()
+    full = lum_relaxation(models, start, fixed=[0], config=replace(config, coarse_fraction=1.0))
+    assert queried == [full_size] * full.iterations
+    assert thin.iterations - len(thin_rounds) < full.iterations  # the full rounds the thin ones saved
+    assert _apart(models, thin.poses, full.poses) < 0.001
+    thin_error = absolute_trajectory_error(thin.poses, sim.truth, align=False).rmse
+    full_error = absolute_trajectory_error(full.poses, sim.truth, align=False).rmse
+    assert abs(thin_error - full_error) < 0.0002, (thin_error, full_error)
+
+
 def test_lum_works_out_its_block_pattern_once_for_rounds_over_the_same_pairs(loop_scans, monkeypatch) -> None:  # type: ignore[no-untyped-def]
     """The rounds' linear systems share one sparsity pattern: its ordering and symbolic factor are
     worked out once per relaxation, not once per round, and the poses are those of a fresh
@@ -550,6 +590,12 @@ def test_a_thin_sample_setting_out_of_range_is_refused_naming_the_field(field: s
     full sample" without a word: the settings say which field is wrong instead."""
     with pytest.raises(SettingsError, match=field):
         pipeline_config({"relax": {field: value}})
+
+
+def test_an_unknown_settle_rule_is_refused_naming_the_field() -> None:
+    """``[engine] relax = {settle_on = "pairs"}`` names the field and the rules there are."""
+    with pytest.raises(SettingsError, match=r"settle_on.*'cost' or 'movement'"):
+        pipeline_config({"relax": {"settle_on": "pairs"}})
 
 
 def test_the_trajectory_benchmark_takes_relaxation_settings_by_name() -> None:
