@@ -8,7 +8,9 @@ Cases:
   peers get the clouds already read, in memory. Quality: ATE against the simulator's ground truth.
 * ``--balm``: BALM hall (89 real scans) from drifted odometry (:func:`slam6d.drift.drifted_odometry`,
   seed 1). Its reference drifts, so quality is RPE against it and self-consistency: ICP started from
-  the final poses between far-apart overlapping scans should barely move them.
+  the final poses between far-apart overlapping scans should barely move them. ``--relax FIELD=VALUE``
+  (repeatable) sets slam6d's relaxation settings there, as a session's ``[engine] relax = {...}``
+  would (docs/scale.md, "Where the rounds stop").
 
 Peers: small_gicp GICP chained from the odometry, the same plus a gtsam pose graph over loop edges
 (scans within 10 m verified by GICP), open3d multiway registration (pairwise point-to-plane ICP on
@@ -32,6 +34,7 @@ from typing import Any
 import numpy as np
 
 from slam6d.drift import drifted_odometry
+from slam6d.engine_settings import pipeline_config
 from slam6d.geometry import (
     UOS,
     Matrix,
@@ -48,6 +51,7 @@ from slam6d.metrics import absolute_trajectory_error, relative_pose_error
 from slam6d.model import ModelIndex
 from slam6d.octree import reduce_points
 from slam6d.pipeline import Pipeline, PipelineConfig
+from slam6d.relax import RelaxationConfig
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = Path(os.environ.get("SLAM6D_DATA", ROOT.parent / "shared" / "data"))
@@ -443,7 +447,10 @@ def simulated(
         run_peers(sequence, quality, only)
 
 
-def balm(peers: bool, only: str | None, method: str, residual_gate: float = 0.0) -> None:
+def balm(
+    peers: bool, only: str | None, method: str, residual_gate: float = 0.0, relax: RelaxationConfig | None = None
+) -> None:
+    """``relax``: slam6d's relaxation settings (``--relax FIELD=VALUE``; default :class:`RelaxationConfig`)."""
     sequence, reference = balm_sequence()
 
     check = SelfConsistency(sequence, reference)
@@ -454,7 +461,9 @@ def balm(peers: bool, only: str | None, method: str, residual_gate: float = 0.0)
 
     print("balm_hall (89 scans, drifted odometry seed 1)")
     began = time.perf_counter()
-    config = PipelineConfig(icp=ICPConfig(method=method), residual_gate=residual_gate)
+    config = PipelineConfig(
+        icp=ICPConfig(method=method), residual_gate=residual_gate, relax=relax or RelaxationConfig()
+    )
     pipeline = Pipeline(sequence, config)
     report = pipeline.run()
     wall = time.perf_counter() - began
@@ -542,6 +551,20 @@ def relax_graph(count: int = 10_000, loop_fraction: float = 0.05) -> None:
     )
 
 
+def relax_settings(assignments: Sequence[str]) -> RelaxationConfig:
+    """``FIELD=VALUE`` pairs (values in TOML, as a session's ``[engine] relax = {...}``) as relaxation
+    settings, checked by the engine's own settings reader so a wrong name or value is named."""
+    import tomllib
+
+    values: dict[str, Any] = {}
+    for assignment in assignments:
+        field, separator, value = assignment.partition("=")
+        if not separator:
+            raise SystemExit(f"--relax {assignment!r}: expected FIELD=VALUE, e.g. coarse_fraction=1.0")
+        values[field.strip()] = tomllib.loads(f"value = {value.strip()}")["value"]
+    return pipeline_config({"relax": values}).relax
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--make-sim", type=Path, help="write the benchmark's simulated loop here first")
@@ -556,6 +579,13 @@ def main() -> None:
         default=0.0,
         help="slam6d's PipelineConfig.residual_gate on BALM and --sim (docs/scale.md)",
     )
+    parser.add_argument(
+        "--relax",
+        action="append",
+        default=[],
+        metavar="FIELD=VALUE",
+        help="a RelaxationConfig setting for slam6d on BALM, e.g. coarse_fraction=1.0 (repeatable; docs/scale.md)",
+    )
     parser.add_argument("--relax-graph", action="store_true", help="10,000-pose graph: ours vs gtsam")
     parser.add_argument("--repeats", type=int, default=5, help="runs of `slam6d run` on --sim (median quoted)")
     args = parser.parse_args()
@@ -564,7 +594,7 @@ def main() -> None:
     if args.sim:
         simulated(args.sim, args.peers, args.only, args.method, args.repeats, args.residual_gate)
     if args.balm:
-        balm(args.peers, args.only, args.method, args.residual_gate)
+        balm(args.peers, args.only, args.method, args.residual_gate, relax_settings(args.relax))
     if args.relax_graph:
         relax_graph()
 

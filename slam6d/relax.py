@@ -70,12 +70,13 @@ class RelaxationConfig:
     round_points: int = 0  # a cap on the data points per LUM round (0 = none)
     first_scale: float = 0.25  # Cauchy scale of the first LUM round, relative to the ICP max distance
     tolerance: float = 0.0005  # metres: stop LUM rounds when no scan moves more
-    settle_fraction: float = 0.2  # or when, at the final robust scale, none moves more than this fraction of it
+    settle_fraction: float = 0.2  # or when none moves more than this fraction of the final robust scale (lum._settled)
     chi2_tolerance: float = 0.005  # or when a round at the final robust scale changes the robust cost less (fraction)
     damping: float = 1e-3  # LUM: a scan's directions weaker than this x its strongest are held (lum._damped)
     robust_scale: float = 0.05  # metres: final Cauchy scale of the LUM point-to-plane residuals (0 = least squares)
     coarse_fraction: float = 0.25  # LUM's first rounds sample this share of pair_points (1 = all rounds at full)
     coarse_chi2_tolerance: float = 0.05  # until a round changes their robust cost less: then the full sample
+    settle_on: str = "cost"  # what ends LUM's rounds: "cost" or "movement" (the scans', lum._settled)
 
     def __post_init__(self) -> None:
         # a share above 1 would silently mean "every round on the full sample"; say so instead
@@ -83,6 +84,8 @@ class RelaxationConfig:
             raise ValueError(
                 f"coarse_fraction must be in (0, 1] (1 = every round on the full sample), got {self.coarse_fraction}"
             )
+        if self.settle_on not in ("cost", "movement"):
+            raise ValueError(f"settle_on must be 'cost' or 'movement', got {self.settle_on!r}")
         if not (self.coarse_chi2_tolerance >= 0 and math.isfinite(self.coarse_chi2_tolerance)):
             raise ValueError(f"coarse_chi2_tolerance must be a fraction >= 0, got {self.coarse_chi2_tolerance}")
 
