@@ -372,6 +372,7 @@ def main() -> None:
     parser.add_argument("--balm-scans", type=int, default=30)
     parser.add_argument("--only", default="", help="run the cases whose name contains this")
     parser.add_argument("--residual-gate", type=float, default=0.0, help="passed to slam6d run (docs/scale.md)")
+    parser.add_argument("--robust-scale", type=float, default=0.0, help="passed to slam6d run (docs/scale.md)")
     parser.add_argument("--methods", default=",".join(METHODS), help="comma-separated subset of the methods")
     parser.add_argument("--octree-timing", action="store_true", help="only time the octree search on a 100k pair")
     parser.add_argument(
@@ -394,6 +395,8 @@ def main() -> None:
         cases = [c for c in cases if args.only in c.name]
         if args.residual_gate:
             cases = [replace(c, run_args=[*c.run_args, "--residual-gate", str(args.residual_gate)]) for c in cases]
+        if args.robust_scale:
+            cases = [replace(c, run_args=[*c.run_args, "--robust-scale", str(args.robust_scale)]) for c in cases]
         print(f"{len(cases)} cases, {len(methods)} methods; success: error <= {SUCCESS_CM:g} cm ({load()})")
         header = f"{'case':42s}" + "".join(f" | {name:>24s}" for name in methods)
         if "slam6d run" in methods:

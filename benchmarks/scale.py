@@ -47,14 +47,16 @@ pairs the neighbour graph counted overlap for at the registered poses (its cost,
   scans: per-step error RMS, and the ATE split into horizontal and vertical.
 
 ``--step-bias`` instead measures, on each dense loop of ``--loop``, the bias of sequential
-registration along the motion (docs/scale.md, "Short steps: pairs off their planes"):
+registration along the motion (docs/scale.md, "Short steps: pairs off their planes"), three ways:
+least squares (the default), the residual gate (``PipelineConfig.residual_gate``, ``--residual-gate``,
+default 4 here) and Geman-McClure weights (``PipelineConfig.robust_scale``, ``--robust-scale``,
+default 0.05 here):
 
 * the cost: every consecutive pair matched from its TRUE relative pose by 15 point-to-plane steps
-  against the previous scan's registration model, every pair within the max distance kept and with
-  the residual gate (``PipelineConfig.residual_gate``); the mean error along the step;
-* the effect: sequential registration alone (no loops, no relaxation) with the gate off and on
-  (``--residual-gate``, default 4 here):
-  the ATE and the mean and summed error of the estimated steps along the true ones.
+  against the previous scan's registration model, the pairs gated or weighted as the registration
+  does once converged; the mean error along the step;
+* the effect: sequential registration alone (no loops, no relaxation): the ATE and the mean and
+  summed error of the estimated steps along the true ones.
 
 ``--loop-report`` adds, after each campus run, where its error lies and what the loops did, from
 the files the run wrote and the simulator's ground truth: the ATE split into horizontal and
@@ -90,7 +92,7 @@ import numpy as np
 
 from slam6d import nn
 from slam6d.geometry import UOS, Matrix, invert, path_lengths, pose_difference, transform_points
-from slam6d.icp import gate_residuals, point_to_plane_step
+from slam6d.icp import gate_residuals, point_to_plane_step, robust_weights
 from slam6d.io.frames import FrameType, read_frames
 from slam6d.io.poses import read_kitti_poses
 from slam6d.io.registry import read_sequence
@@ -382,16 +384,20 @@ def rms_row(name: str, errors: np.ndarray, extra: str = "") -> str:
     return f"| {name} | {roll:.3f}° | {pitch:.3f}° | {yaw:.3f}° | {dz:.2f} cm |{extra}"
 
 
-def from_truth(model: ModelIndex, data: np.ndarray, relative: Matrix, max_distance: float, gate: float = 0.0) -> Matrix:
+def from_truth(
+    model: ModelIndex, data: np.ndarray, relative: Matrix, max_distance: float, gate: float = 0.0, robust: float = 0.0
+) -> Matrix:
     """15 point-to-plane steps of ``data`` against ``model`` from the true relative pose (no stopping
-    rule); ``gate`` > 0 leaves out the pairs as ``ICPConfig.residual_gate`` does."""
+    rule); ``gate`` > 0 leaves out the pairs as ``ICPConfig.residual_gate`` does, ``robust`` > 0
+    weighs them as ``ICPConfig.robust_scale`` does (both apply once converged: here from the start)."""
     transform = relative.copy()
     for _ in range(15):
         moved = transform_points(transform, data)
         found, partners, _, normals = model.plane_pairs(moved, max_distance)
         if gate > 0:
             found, partners, normals = gate_residuals(moved[found], found, partners, normals, gate)
-        transform = point_to_plane_step(moved[found], partners, normals) @ transform
+        weights = robust_weights(moved[found], partners, normals, robust) if robust > 0 else None
+        transform = point_to_plane_step(moved[found], partners, normals, weights=weights) @ transform
     return transform
 
 
@@ -406,27 +412,35 @@ def along_steps(truth: list[Matrix], estimate: list[Matrix]) -> np.ndarray:
     return np.array(errors)
 
 
-def step_bias(work: Path, scans: int, gate_on: float) -> None:
+def step_bias(work: Path, scans: int, gate_on: float, robust_on: float) -> None:
     """The ``--step-bias`` rows of one dense loop (see the module docstring)."""
     directory = session(work, "loop", scans)
     sequence = read_sequence(directory, "uos")
     truth = [UOS.pose_to_canonical(p) for p in read_kitti_poses(directory / "ground_truth_kitti.txt")]
-    config = PipelineConfig(loops=False, relaxation="none")
+    base = PipelineConfig(loops=False, relaxation="none")
     lengths = [float(np.linalg.norm((invert(truth[k - 1]) @ truth[k])[:3, 3])) for k in range(1, scans)]
-    for gate in (0.0, gate_on):
-        run = Pipeline(sequence, replace(config, residual_gate=gate))
+    variants = {
+        "least squares (default)": base,
+        f"gate {gate_on:g}": replace(base, residual_gate=gate_on),
+        f"Geman-McClure {100 * robust_on:g} cm": replace(base, robust_scale=robust_on),
+    }
+    for name, config in variants.items():
+        run = Pipeline(sequence, config)
         run.run()
         pulls = []
         for k in range(1, scans):
             reduced = run.reduced_points(k)
             data = reduced[reduce_points(reduced, config.data_voxel_size)]
             relative = invert(truth[k - 1]) @ truth[k]
-            fitted = from_truth(run.registration_model(k - 1), data, relative, config.icp.max_distance, gate)
+            model = run.registration_model(k - 1)
+            fitted = from_truth(
+                model, data, relative, config.icp.max_distance, config.residual_gate, config.robust_scale
+            )
             pulls.append(along_steps([np.eye(4), relative], [np.eye(4), fitted])[0])
         along = along_steps(truth, [np.asarray(p) for p in run.poses])
         ate = 100 * absolute_trajectory_error(run.poses, truth).rmse
         print(
-            f"| {scans} | {100 * np.mean(lengths):.1f} cm | {gate:g} | {100 * np.mean(pulls):+.3f} cm"
+            f"| {scans} | {100 * np.mean(lengths):.1f} cm | {name} | {100 * np.mean(pulls):+.3f} cm"
             f" | {100 * np.mean(along):+.3f} cm | {100 * np.sum(along):+.1f} cm | {ate:.2f} cm |",
             flush=True,
         )
@@ -536,11 +550,19 @@ def main() -> None:
         help="passed to slam6d run (e.g. 4); with --step-bias the gate compared with none (default 4)",
     )
     parser.add_argument(
+        "--robust-scale",
+        type=float,
+        default=0.0,
+        help="passed to slam6d run (e.g. 0.05); with --step-bias the scale compared with none (default 0.05)",
+    )
+    parser.add_argument(
         "--profile-relaxation", action="store_true", help="profile LUM relaxation on the sessions instead"
     )
     parser.add_argument("--per-step", type=int, metavar="N", help="only the campus's per-step error tables on N scans")
     parser.add_argument(
-        "--step-bias", action="store_true", help="only: the dense loops' bias along each step, gate off and on"
+        "--step-bias",
+        action="store_true",
+        help="only: the dense loops' bias along each step, least squares, gate and weights",
     )
     parser.add_argument(
         "--loop-report", action="store_true", help="after each campus run: its error by stage, revisits and loops"
@@ -571,14 +593,16 @@ def main() -> None:
         return
     if args.step_bias:
         print("dense loop: error along each step (negative: short), from the truth and by sequential registration")
-        print("| scans | step | residual gate | from the truth, mean | registration, mean | summed | ATE |")
+        print("| scans | step | registration | from the truth, mean | registration, mean | summed | ATE |")
         print("|---|---|---|---|---|---|---|")
         for scans in args.loop:
-            step_bias(args.work, scans, args.residual_gate or 4.0)
+            step_bias(args.work, scans, args.residual_gate or 4.0, args.robust_scale or 0.05)
         return
     extra = ["--memory-budget", args.memory_budget] if args.memory_budget else []
     if args.residual_gate:
         extra += ["--residual-gate", str(args.residual_gate)]
+    if args.robust_scale:
+        extra += ["--robust-scale", str(args.robust_scale)]
     print(f"slam6d run, {os.cpu_count()} cores; load average before: {os.getloadavg()[0]:.1f}")
     print("| case | scans | wall | CPU | stages | neighbour pairs | peak memory | ATE | ATE before relaxation | load |")
     print("|---|---|---|---|---|---|---|---|---|---|")

@@ -404,16 +404,25 @@ def run_peers(sequence, quality: Callable[[list[Matrix]], str], only: str | None
 
 
 def simulated(
-    directory: Path, peers: bool, only: str | None, method: str, repeats: int, residual_gate: float = 0.0
+    directory: Path,
+    peers: bool,
+    only: str | None,
+    method: str,
+    repeats: int,
+    residual_gate: float = 0.0,
+    robust_scale: float = 0.0,
 ) -> None:
     """``slam6d run`` as a user starts it, ``repeats`` times: one run's wall time swings by ~0.5 s
     with the machine's other work and the page cache, so the median is the figure to quote.
-    ``residual_gate`` > 0 is passed as ``--residual-gate`` (0 keeps the run's default)."""
+    ``residual_gate`` and ``robust_scale`` > 0 are passed as ``--residual-gate`` and
+    ``--robust-scale`` (0 keeps the run's default)."""
     truth = [UOS.pose_to_canonical(p) for p in read_kitti_poses(directory / "ground_truth_kitti.txt")]
     out = directory.parent / (directory.name + "_out")
     command = [sys.executable, "-m", "slam6d.cli", "run", str(directory), "--format", "uos", "--out", str(out)]
     if residual_gate:
         command += ["--residual-gate", str(residual_gate)]
+    if robust_scale:
+        command += ["--robust-scale", str(robust_scale)]
     print(f"simulated loop {directory} ({len(truth)} scans)")
     walls = []
     for _ in range(max(1, repeats)):
@@ -448,7 +457,12 @@ def simulated(
 
 
 def balm(
-    peers: bool, only: str | None, method: str, residual_gate: float = 0.0, relax: RelaxationConfig | None = None
+    peers: bool,
+    only: str | None,
+    method: str,
+    residual_gate: float = 0.0,
+    relax: RelaxationConfig | None = None,
+    robust_scale: float = 0.0,
 ) -> None:
     """``relax``: slam6d's relaxation settings (``--relax FIELD=VALUE``; default :class:`RelaxationConfig`)."""
     sequence, reference = balm_sequence()
@@ -457,12 +471,15 @@ def balm(
 
     def quality(poses: list[Matrix]) -> str:
         rpe = relative_pose_error(poses, reference)
-        return f"{check.summary(poses)}, RPE {100 * rpe.translation_mean:.2f} cm / {rpe.rotation_mean_deg:.3f} deg"
+        return f"{check.summary(poses)}, RPE {100 * rpe.translation_mean:.3f} cm / {rpe.rotation_mean_deg:.3f} deg"
 
     print("balm_hall (89 scans, drifted odometry seed 1)")
     began = time.perf_counter()
     config = PipelineConfig(
-        icp=ICPConfig(method=method), residual_gate=residual_gate, relax=relax or RelaxationConfig()
+        icp=ICPConfig(method=method),
+        residual_gate=residual_gate,
+        robust_scale=robust_scale,
+        relax=relax or RelaxationConfig(),
     )
     pipeline = Pipeline(sequence, config)
     report = pipeline.run()
@@ -586,15 +603,21 @@ def main() -> None:
         metavar="FIELD=VALUE",
         help="a RelaxationConfig setting for slam6d on BALM, e.g. coarse_fraction=1.0 (repeatable; docs/scale.md)",
     )
+    parser.add_argument(
+        "--robust-scale",
+        type=float,
+        default=0.0,
+        help="slam6d's PipelineConfig.robust_scale on BALM and --sim (docs/scale.md)",
+    )
     parser.add_argument("--relax-graph", action="store_true", help="10,000-pose graph: ours vs gtsam")
     parser.add_argument("--repeats", type=int, default=5, help="runs of `slam6d run` on --sim (median quoted)")
     args = parser.parse_args()
     if args.make_sim:
         make_simulated_loop(args.make_sim)
     if args.sim:
-        simulated(args.sim, args.peers, args.only, args.method, args.repeats, args.residual_gate)
+        simulated(args.sim, args.peers, args.only, args.method, args.repeats, args.residual_gate, args.robust_scale)
     if args.balm:
-        balm(args.peers, args.only, args.method, args.residual_gate, relax_settings(args.relax))
+        balm(args.peers, args.only, args.method, args.residual_gate, relax_settings(args.relax), args.robust_scale)
     if args.relax_graph:
         relax_graph()
 

@@ -414,6 +414,14 @@ def run(
             " steps towards zero motion, docs/scale.md)."
         ),
     ] = 0.0,
+    robust_scale: Annotated[
+        float,
+        typer.Option(
+            help="Sequential ICP, once converged with all pairs, settles again with Geman-McClure weights of this"
+            " scale in metres (0 = least squares; 0.05 removes the pull of short steps towards zero motion and"
+            " keeps more elsewhere than --residual-gate, docs/scale.md)."
+        ),
+    ] = 0.0,
 ) -> None:
     """Register a whole sequence: sequential ICP, loop closing, global relaxation; write the trajectory."""
     import time
@@ -454,6 +462,7 @@ def run(
                 "relaxation": relaxation,
                 "tilt_noise_deg": tilt,
                 "residual_gate": residual_gate,
+                "robust_scale": robust_scale,
             }
         )
 

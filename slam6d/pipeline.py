@@ -193,6 +193,13 @@ class PipelineConfig:
     steps: pairs off their planes"). Steps of 1 m are too long for the patterns to line up near the
     truth (100 scans: +0.04 cm per step), but the same pairs scatter them (ATE after registration
     7.7 -> 1.8 cm). The gate waits for ICP to converge with every pair (``ICPConfig.residual_gate``).
+    ``robust_scale``: sequential ICP, once converged with every pair equally weighted, settles again
+    with each pair weighted by Geman-McClure's 1 / (1 + (r / c)²)² of its residual, c this scale in
+    metres (``ICPConfig.robust_scale``; 0, the default, keeps least squares). The soft counterpart
+    of the gate at a fixed scale: at 0.05 (``slam6d run --robust-scale 0.05``) the dense loop's 24 cm
+    steps are no longer pulled short and, unlike the gate, the 8-scan test loop and Kurt3D keep
+    their figures; off by default because BALM's RPE still rises 0.547 -> 0.562 cm (docs/scale.md,
+    "Short steps: pairs off their planes").
     ``tilt_noise_deg``: the odometry poses' roll and pitch are an inclinometer's readings with this
     noise (degrees), absolute rather than accumulated; each scan's measured up is then a prior on
     its roll and pitch in sequential ICP and in the ``lum`` and ``graph`` relaxations, weighed
@@ -229,6 +236,7 @@ class PipelineConfig:
     odometry_trust_deg: float = 3.0
     hold_constraint: float = 0.025
     residual_gate: float = 0.0
+    robust_scale: float = 0.0
     tilt_noise_deg: float | None = None
     registration_tilt_deg: float = PLANES_TILT_DEG
     fused_registration_tilt_deg: float = RINGS_TILT_DEG
@@ -267,6 +275,8 @@ class PipelineConfig:
             raise ValueError(f"fused_scans must be >= 0 (0 or 1 = never fuse), got {self.fused_scans}")
         if not (self.residual_gate >= 0 and math.isfinite(self.residual_gate)):
             raise ValueError(f"residual_gate must be >= 0 (0 = keep every pair), got {self.residual_gate}")
+        if not (self.robust_scale >= 0 and math.isfinite(self.robust_scale)):
+            raise ValueError(f"robust_scale must be >= 0 metres (0 = least squares), got {self.robust_scale}")
         if self.max_range is not None and not self.max_range > 0:
             raise ValueError(f"max_range must be positive, got {self.max_range}")
         if self.tilt_noise_deg is not None and not (self.tilt_noise_deg > 0 and math.isfinite(self.tilt_noise_deg)):
@@ -334,6 +344,7 @@ class Pipeline:
             epsilon=max(config.icp.epsilon, config.registration_epsilon),
             hold_below=config.hold_constraint,
             residual_gate=config.residual_gate,
+            robust_scale=config.robust_scale,
         )
         # a constant-velocity prediction is off by however much the motion changed (a car easing out
         # of a turn: 4° of yaw); a fit from it that pairs clearly fewer than usual is redone with this

@@ -126,6 +126,33 @@ def test_residual_gate_leaves_out_pairs_off_their_planes_and_still_counts_them(
     assert gated.pairs == kept.pairs == len(data)
 
 
+def test_robust_weights_shrink_the_pull_of_pairs_off_their_planes(model_index: ModelIndex, model: np.ndarray) -> None:
+    """The same points 12-18 cm in front of the wall, with ``robust_scale`` instead of the gate: once
+    converged with every pair, ICP settles again with each pair weighted by Geman-McClure's
+    1 / (1 + (r / 5 cm)²)², so the near points weigh 0.5-2 % and barely pull; every pair is still
+    counted."""
+    rng = np.random.default_rng(4)
+    wall = model[np.abs(model[:, 0] - 5.0) < 1e-9]
+    near = wall[rng.choice(len(wall), 200, replace=False)]
+    near[:, 0] -= rng.uniform(0.12, 0.18, len(near))
+    data = np.vstack([copy_of(model), copy_of(near)])
+    config = ICPConfig(distance_schedule=(1.0, 0.5), max_iterations=200, data_voxel_size=0.0)
+    kept = icp(model_index, data, np.eye(4), config)
+    weighted = icp(model_index, data, np.eye(4), replace(config, robust_scale=0.05))
+    pull = pose_difference(kept.transform, MOTION)[0]
+    assert pull > 0.01
+    assert pose_difference(weighted.transform, MOTION)[0] < 0.05 * pull  # 1.9 cm -> 0.03 cm
+    assert weighted.converged
+    assert weighted.pairs == kept.pairs == len(data)
+
+
+def test_robust_scale_must_be_a_distance() -> None:
+    with pytest.raises(ValueError, match="robust_scale"):
+        ICPConfig(robust_scale=-0.05)
+    with pytest.raises(ValueError, match="robust_scale"):
+        ICPConfig(robust_scale=float("inf"))
+
+
 def test_iteration_cap_is_respected_and_reported(model_index: ModelIndex, model: np.ndarray) -> None:
     config = ICPConfig(method="point_to_point", max_iterations=3)
     result = icp(model_index, copy_of(model), np.eye(4), config)

@@ -222,6 +222,8 @@ def test_config_rejects_unknown_names() -> None:
         PipelineConfig(relaxation="gtsam")
     with pytest.raises(ValueError, match="residual_gate"):
         PipelineConfig(residual_gate=-1.0)
+    with pytest.raises(ValueError, match="robust_scale"):
+        PipelineConfig(robust_scale=-0.05)
 
 
 def test_results_are_written_in_the_inputs_units_and_frame(small_loop, tmp_path) -> None:  # type: ignore[no-untyped-def]
@@ -250,7 +252,7 @@ def test_cli_run_writes_poses_frames_and_report(tmp_path) -> None:
         tmp_path / "in", SimulationConfig(seed=2, scans=6, points_per_scan=15000, loop_length=16.0, loop_width=10.0)
     )
     arguments = ["run", str(tmp_path / "in"), "--format", "uos", "--out", str(tmp_path / "out"), "--relaxation", "lum"]
-    result = CliRunner().invoke(app, [*arguments, "--residual-gate", "4"])
+    result = CliRunner().invoke(app, [*arguments, "--residual-gate", "4", "--robust-scale", "0.05"])
     assert result.exit_code == 0, result.output
     assert "6 scans registered" in result.output
     estimate = read_kitti_poses(tmp_path / "out" / "poses_kitti.txt")
@@ -259,7 +261,8 @@ def test_cli_run_writes_poses_frames_and_report(tmp_path) -> None:
     assert len(list((tmp_path / "out").glob("scan*.frames"))) == 6
     report = json.loads((tmp_path / "out" / "report.json").read_text())
     assert report["relaxation"] == "lum" and "registration" in report["stage_seconds"]
-    assert report["settings"]["residual_gate"] == 4.0  # the flag reached the engine
+    assert report["settings"]["residual_gate"] == 4.0  # the flags reached the engine
+    assert report["settings"]["robust_scale"] == 0.05
 
 
 def test_cli_run_refuses_bad_options_without_reading_every_scan(tmp_path, monkeypatch) -> None:
@@ -505,15 +508,18 @@ def test_searches_in_the_campus_turn_at_scan_269_stay_with_the_odometry(
         assert max(shifts) > 1.0, (shifts, turns)
 
 
-def test_short_steps_of_a_dense_scanner_are_not_pulled_short() -> None:
+@pytest.mark.parametrize("robust", [{"residual_gate": 4.0}, {"robust_scale": 0.05}], ids=["gate", "weights"])
+def test_short_steps_of_a_dense_scanner_are_not_pulled_short(robust: dict[str, float]) -> None:
     """Sequential registration alone over the dense loop scanned 400 times (24 cm steps): the mean
-    forward error per step stays near zero. Pairs whose model plane is wrong (a cube normal over a
-    distant surface's sparse scan lines) sit centimetres off it at the true pose, and with the same
-    scanner's pattern on both scans those residuals shrink towards zero motion; kept, they shortened
-    these 44 steps by 0.55 cm each (registration-only ATE 10.5 cm), left out
-    (``PipelineConfig.residual_gate``) by 0.06 cm (ATE 1.5 cm; docs/scale.md, "Short steps")."""
+    forward error per step stays near zero. Pairs off their model plane (a cube normal over a
+    distant surface's sparse scan lines, a closest point on another surface between two of them) sit
+    centimetres off it at the true pose, and with the same scanner's pattern on both scans those
+    residuals shrink towards zero motion; kept, they shortened these 44 steps by 0.55 cm each
+    (registration-only ATE 10.5 cm), left out (``PipelineConfig.residual_gate``) by 0.06 cm (ATE
+    1.5 cm), weighted down (``PipelineConfig.robust_scale``) by 0.07 cm (ATE 1.9 cm; docs/scale.md,
+    "Short steps")."""
     loop = simulated_loop(scans=400, points=30000, first=45)
-    run = Pipeline(loop.sequence, PipelineConfig(loops=False, relaxation="none", residual_gate=4.0))
+    run = Pipeline(loop.sequence, PipelineConfig(loops=False, relaxation="none", **robust))
     run.run()
     forward = []
     for k in range(1, len(loop.truth)):
