@@ -43,7 +43,7 @@ from numpy.typing import NDArray
 from slam6d.attitude import TiltPrior, measured_ups, tilt_information
 from slam6d.block_system import BlockSystem
 from slam6d.errors import RelaxationError
-from slam6d.geometry import Matrix, invert, make_pose, so3_exp, transform_points
+from slam6d.geometry import Matrix, invert, so3_exp, transform_points
 from slam6d.icp import correspondences, icp
 from slam6d.model import on_the_seen_side
 from slam6d.nn import build_index
@@ -402,10 +402,12 @@ def _joint_step(
         if patterns is not None:
             patterns[held] = system
     step = system.solve(_damped(diag, config.damping), np.ascontiguousarray(blocks[:, :6, 6:]), rhs)
-    moved = {}
-    for k in range(count):
-        if k not in fixed and k not in unused:
-            moved[k] = current[k] @ make_pose(so3_exp(step[k, 3:]), step[k, :3])
+    movers = np.array([k for k in range(count) if k not in held], dtype=np.int64)
+    update = np.zeros((len(movers), 4, 4))  # every free scan's Exp([ρ, φ]) at once
+    update[:, :3, :3] = so3_exp(step[movers, 3:])
+    update[:, :3, 3] = step[movers, :3]
+    update[:, 3, 3] = 1.0
+    moved = dict(zip(movers.tolist(), placed[movers] @ update, strict=True))
     return _Round(moved, float(weight @ sums[:, 0]), float(weight @ sums[:, 1]), _plane_rms(sums))
 
 
