@@ -188,7 +188,7 @@ def spread_evenly(lengths: NDArray[np.int64], counts: NDArray[np.int64]) -> tupl
     to the last (all of them where a scan has no more than that), stacked; and which scan each
     index is of. The indices are ``np.linspace(0, length - 1, count).round()``'s, bit for bit,
     computed for every scan at once: a LUM relaxation samples a budget of its own for every pair,
-    and one linspace per pair cost 0.6 s of CPU at 400 scans (16,000 pairs, two samples)."""
+    and one linspace per pair (16,000 pairs at 400 scans, two samples) cost 0.6 s under cProfile."""
     lengths = np.asarray(lengths, dtype=np.int64)
     counts = np.minimum(np.asarray(counts, dtype=np.int64), lengths)
     source = np.repeat(np.arange(len(counts)), counts)
