@@ -12,8 +12,7 @@ from collections.abc import Iterable
 import cvxopt
 import numba
 import numpy as np
-import scipy.sparse
-from cvxopt import cholmod
+from cvxopt import base, cholmod
 from numpy.typing import NDArray
 
 from slam6d.errors import RelaxationError
@@ -198,7 +197,8 @@ class BlockSystem:
     gradients preconditioned with the factor of an earlier solve of the same pattern (a
     relaxation's rounds, whose matrices differ by their Cauchy weights and re-drawn pairs), to a
     residual of ``CG_TOLERANCE`` of the right-hand side, and refactored only when that takes more
-    than ``CG_ITERATIONS`` iterations: on the 400-scan loop 5-23 iterations of ~4 ms each, the
+    than ``CG_ITERATIONS`` iterations: on the 400-scan loop 5-23 iterations of ~4 ms each (the
+    products from the stored lower triangle by cvxopt's sparse symv, no second copy), the
     steps equal to 1e-12 m. Smaller systems are factorised every time (a factorisation costs them
     a few iterations' worth, 2 ms at 100 scans).
     """
@@ -271,8 +271,6 @@ class BlockSystem:
             (self.size, self.size),
         )
         self._symbolic = cholmod.symbolic(self._matrix, uplo="L") if self.size else None
-        self._unique = unique
-        self._product: tuple[scipy.sparse.csr_array, NDArray[np.int64]] | None = None  # made when first needed
 
     def solve(
         self, diag: NDArray[np.float64], off: NDArray[np.float64], rhs: NDArray[np.float64]
@@ -342,29 +340,18 @@ class BlockSystem:
         cholmod.solve(self._symbolic, solution)
         return np.asarray(solution).ravel()
 
-    def _product_matrix(self) -> tuple[scipy.sparse.csr_array, NDArray[np.int64]]:
-        """The whole symmetric matrix for conjugate gradients' products, and per entry of its data the
-        stored (lower) value it takes: each stored entry at its place and, off the diagonal, mirrored.
-        Made once per pattern, and only for a system that is preconditioned."""
-        if self._product is None:
-            size = max(self.size, 1)
-            lower_rows, lower_cols = self._unique % size, self._unique // size
-            strict = lower_rows != lower_cols
-            # each coordinate labelled by its position from 1 (a 0 would vanish from the CSR), none repeat
-            labels = np.arange(1, len(self._unique) + int(strict.sum()) + 1, dtype=np.float64)
-            rows = np.concatenate([lower_rows, lower_cols[strict]])
-            cols = np.concatenate([lower_cols, lower_rows[strict]])
-            whole = scipy.sparse.csr_array(scipy.sparse.coo_array((labels, (rows, cols)), shape=(self.size, self.size)))
-            stored = np.concatenate([np.arange(len(self._unique)), np.flatnonzero(strict)])
-            self._product = whole, stored[whole.data.astype(np.int64) - 1]
-        return self._product
-
     def _preconditioned(self, stored: NDArray[np.float64], rhs: NDArray[np.float64]) -> NDArray[np.float64] | None:
         """Conjugate gradients on the matrix of ``stored`` values, preconditioned by the factor held;
         None when they do not reach ``CG_TOLERANCE`` within ``CG_ITERATIONS`` (or meet a direction
         of no curvature: the matrix is no longer positive definite), which leaves it to a refactor."""
-        matrix, entries = self._product_matrix()
-        matrix.data = stored[entries]
+        self._matrix.V = cvxopt.matrix(stored)  # the factor held is of earlier values
+        out = cvxopt.matrix(0.0, (self.size, 1))
+
+        def product(vector: NDArray[np.float64]) -> NDArray[np.float64]:
+            """The whole symmetric matrix times ``vector``, from its stored lower triangle."""
+            base.symv(self._matrix, cvxopt.matrix(vector), out, uplo="L")
+            return np.array(out).ravel()
+
         limit = self.CG_TOLERANCE * float(np.linalg.norm(rhs))
         solution = np.zeros_like(rhs)
         residual = rhs.copy()
@@ -374,7 +361,7 @@ class BlockSystem:
         direction = turned.copy()
         along = float(residual @ turned)
         for _ in range(self.CG_ITERATIONS):
-            image = matrix @ direction
+            image = product(direction)
             curvature = float(direction @ image)
             if not curvature > 0.0:
                 return None
