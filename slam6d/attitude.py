@@ -219,22 +219,30 @@ def tilt_information(hessian: FloatArray, up: FloatArray) -> FloatArray:
     common scale) holds on the two tilt axes perpendicular to ``up``, with the translation free
     (the Schur complement: a tilt about the scanner that a shift undoes is no information).
 
-    One system (6, 6) with its ``up`` (3,) gives a 0-d array (``float()`` of it is the number), a
-    stack (n, 6, 6) with (n, 3) one value each: a joint solve weighs every scan's prior each round,
-    and one call per scan (3,200 over the rounds of a 400-scan relaxation) cost 0.15 s of CPU, 0.65 s
-    under cProfile. A
-    translation block that cannot be inverted (a scan without pairs) leaves the rotation block
-    as it is.
+    One system (6, 6) with its ``up`` (3,) gives one number, a stack (n, 6, 6) with (n, 3) one
+    each: a joint solve weighs every scan's prior each round, and one call per scan (3,200 over the
+    rounds of a 400-scan relaxation) cost 0.15 s of CPU, 0.65 s under cProfile; ICP calls it with
+    one system per iteration. A translation block that cannot be inverted (a scan without pairs)
+    leaves the rotation block as it is.
     """
     hessian = np.asarray(hessian, dtype=np.float64)
     up = np.asarray(up, dtype=np.float64)
-    rotation, mixed, translation = hessian[..., :3, :3], hessian[..., :3, 3:], hessian[..., 3:, 3:]
-    solvable = np.abs(np.linalg.det(translation)) > 0.0
-    safe = np.where(solvable[..., None, None], translation, np.eye(3))
-    coupled = mixed @ np.linalg.solve(safe, np.swapaxes(mixed, -1, -2))
-    reduced = rotation - np.where(solvable[..., None, None], coupled, 0.0)
+    reduced = _rotation_with_translation_free(hessian[..., :3, :3], hessian[..., :3, 3:], hessian[..., 3:, 3:])
     across = np.eye(3) - up[..., :, None] * up[..., None, :]
-    return np.maximum(np.einsum("...ii->...", across @ reduced @ across) / 2.0, 0.0)
+    return np.maximum(np.trace(across @ reduced @ across, axis1=-2, axis2=-1) / 2.0, 0.0)
+
+
+def _rotation_with_translation_free(rotation: FloatArray, mixed: FloatArray, translation: FloatArray) -> FloatArray:
+    """rotation - mixed inv(translation) mixedᵀ, per system; the rotation block itself where the
+    translation block is singular (solved one by one only then: a stack that holds one)."""
+    try:
+        return rotation - mixed @ np.linalg.solve(translation, np.swapaxes(mixed, -1, -2))
+    except np.linalg.LinAlgError:
+        if translation.ndim == 2:
+            return rotation
+        return np.array(
+            [_rotation_with_translation_free(*system) for system in zip(rotation, mixed, translation, strict=True)]
+        )
 
 
 def tilt_normal_equations(
