@@ -24,10 +24,14 @@ With ``--profile-relaxation`` each session (dense loop and campus) is instead re
 process (loops closed, no relaxation), and ``slam6d run``'s LUM relaxation is then run on those
 poses under ``cProfile`` (CPU time), its rounds and the ATE before and after it printed: its time
 split into the rounds' closest-point queries and normal-equation blocks,
-finding the bounded neighbour graph, gathering each scan's batch of neighbour points, and the
+finding the bounded neighbour graph, gathering each scan's batch of neighbour points, the
+inclinometer's prior where the folder declares one (as ``slam6d run`` holds it), and the
 sparse linear algebra (working out the block pattern, factorising and solving) - the measurement
 that decides whether the solve needs windows or a hierarchy (docs/scale.md) - and how many scan
 pairs the neighbour graph counted overlap for at the registered poses (its cost, as a count).
+
+``--stage-cpu`` instead runs each session's pipeline in this process as ``slam6d run`` configures
+it and prints the CPU time (user + system, all threads) of each stage, the ATE and the load.
 
 ``--per-step N`` instead measures where the campus's height error comes from, on its first N scans:
 
@@ -271,8 +275,9 @@ def loop_report(directory: Path, out: Path) -> None:
 
 RELAXATION_PARTS = {  # (module, function) whose cumulative time makes up each part of the split
     "rounds' queries and blocks": [("lum.py", "_scan_system"), ("lum.py", "_remote_scan_system")],
-    "neighbour graph": [("relax.py", "neighbour_pairs")],
+    "neighbour graph": [("relax.py", "neighbour_graph")],
     "batches of neighbour points": [("lum.py", "_batches")],
+    "tilt prior": [("lum.py", "_add_tilt_prior")],
     "block pattern": [("block_system.py", "__init__")],
     "factorise and solve": [("block_system.py", "solve")],
 }
@@ -304,12 +309,13 @@ def profile_relaxation(directory: Path) -> None:
     import time
     from dataclasses import replace
 
+    from slam6d.attitude import declared_tilt_noise
     from slam6d.io.registry import read_sequence
     from slam6d.pipeline import Pipeline, PipelineConfig
     from slam6d.relax import neighbour_graph
     from slam6d.relaxation_methods import relax_poses
 
-    config = PipelineConfig()
+    config = PipelineConfig(tilt_noise_deg=declared_tilt_noise(directory))  # as `slam6d run` on the folder
     pipeline = Pipeline(read_sequence(directory, "uos"), replace(config, relaxation="none"))
     pipeline.run()
     if config.relax_registration_models:  # as the relaxation stage hands them over
@@ -320,7 +326,9 @@ def profile_relaxation(directory: Path) -> None:
     profile = cProfile.Profile(time.process_time)  # CPU seconds: what the machine's other work inflates least
     began = time.process_time()
     profile.enable()
-    result = relax_poses("lum", pipeline.models, pipeline.poses, links=pipeline.links, config=config.relax)
+    result = relax_poses(
+        "lum", pipeline.models, pipeline.poses, links=pipeline.links, config=config.relax, tilt=pipeline.tilt
+    )
     profile.disable()
     seconds = time.process_time() - began
     truth = [UOS.pose_to_canonical(p) for p in read_kitti_poses(directory / "ground_truth_kitti.txt")]
@@ -359,6 +367,31 @@ def profile_relaxation(directory: Path) -> None:
         f" | {shares} | {os.getloadavg()[0]:.1f} |",
         flush=True,
     )
+
+
+def stage_cpu(directory: Path) -> None:
+    """``slam6d run``'s pipeline on ``directory`` in this process (configured as the command line
+    configures it for a folder: its declared inclinometer), with the CPU time (user + system of
+    every thread) of each stage: what the machine's other work inflates least, split as the run's
+    ``stage_seconds`` splits its wall time (each step counted to the stage that produced it)."""
+    import time
+
+    from slam6d.attitude import declared_tilt_noise
+
+    began = time.process_time()
+    sequence = read_sequence(directory, "uos")
+    cpu = {"reading": time.process_time() - began}
+    pipeline = Pipeline(sequence, PipelineConfig(tilt_noise_deg=declared_tilt_noise(directory)))
+    cpu["reduction"] = time.process_time() - began - cpu["reading"]
+    while not pipeline.done:
+        start = time.process_time()
+        pipeline.step()
+        cpu[pipeline.stage] = cpu.get(pipeline.stage, 0.0) + time.process_time() - start
+    total = time.process_time() - began
+    truth = [UOS.pose_to_canonical(p) for p in read_kitti_poses(directory / "ground_truth_kitti.txt")]
+    ate = 100 * absolute_trajectory_error(pipeline.poses, truth).rmse
+    stages = ", ".join(f"{stage} {seconds:.1f}" for stage, seconds in cpu.items() if seconds >= 0.05)
+    print(f"| {directory.name} | {total:.1f} s | {stages} | {ate:.3f} cm | {os.getloadavg()[0]:.1f} |", flush=True)
 
 
 def step_errors(truth: list[Matrix], estimate: list[Matrix]) -> np.ndarray:
@@ -568,6 +601,9 @@ def main() -> None:
         "--loop-report", action="store_true", help="after each campus run: its error by stage, revisits and loops"
     )
     parser.add_argument(
+        "--stage-cpu", action="store_true", help="only: each session's run in this process, CPU time per stage"
+    )
+    parser.add_argument(
         "--relax-from-truth", action="store_true", help="only: the run's relaxation started from the campus's truth"
     )
     args = parser.parse_args()
@@ -581,6 +617,14 @@ def main() -> None:
         for case, counts in (("loop", args.loop), ("campus", args.campus)):
             for scans in counts:
                 profile_relaxation(session(args.work, case, scans))
+        return
+    if args.stage_cpu:
+        print(f"slam6d run's pipeline in one process, CPU seconds per stage, {os.cpu_count()} cores")
+        print("| session | CPU | per stage | ATE | load |")
+        print("|---|---|---|---|---|")
+        for case, counts in (("loop", args.loop), ("campus", args.campus)):
+            for scans in counts:
+                stage_cpu(session(args.work, case, scans))
         return
     if args.relax_from_truth:
         print("| session | ATE after relaxing the truth (across / height) | rounds | load |")

@@ -78,6 +78,7 @@ __all__ = [
     "declared_tilt_noise",
     "heading_only",
     "measured_up",
+    "measured_ups",
     "tilt_error_deg",
     "tilt_information",
     "tilt_normal_equations",
@@ -88,6 +89,12 @@ def measured_up(pose: Matrix) -> FloatArray:
     """The world's up in the frame of a scan whose world_from_scan is ``pose``: what an
     inclinometer on it reads (independent of its heading)."""
     return np.asarray(pose, dtype=np.float64)[:3, :3].T @ UP
+
+
+def measured_ups(rotations: FloatArray) -> FloatArray:
+    """:func:`measured_up` of many scans at once from their rotations (n, 3, 3): Rᵀ u is R's last
+    row, u being the canonical z."""
+    return np.ascontiguousarray(np.asarray(rotations, dtype=np.float64)[..., 2, :])
 
 
 def tilt_error_deg(pose: Matrix, up: FloatArray) -> float:
@@ -175,12 +182,13 @@ class TiltPrior:
     def __len__(self) -> int:
         return len(self.measured)
 
-    def weights(self, step_information: Sequence[float]) -> FloatArray:
+    def weights(self, step_information: Sequence[float] | FloatArray) -> FloatArray:
         """Per scan, the prior's weight in a joint solve: :attr:`ratios` x the median tilt
         information the registration's steps hold there (:func:`tilt_information`; all 0 when
         none has any, which leaves the prior out)."""
-        positive = [h for h in step_information if h > 0]
-        return self.ratios * (float(np.median(positive)) if positive else 0.0)
+        information = np.asarray(step_information, dtype=np.float64).ravel()
+        positive = information[information > 0]
+        return self.ratios * (float(np.median(positive)) if len(positive) else 0.0)
 
     def terms(
         self, rotations: FloatArray, free: NDArray[np.bool_], weights: FloatArray
@@ -206,17 +214,35 @@ class TiltPrior:
         return ScanTilt(self.ups[index], np.asarray(world_from_model)[:3, :3].T @ UP, self.sequential_ratio(index))
 
 
-def tilt_information(hessian: FloatArray, up: FloatArray) -> float:
+def tilt_information(hessian: FloatArray, up: FloatArray) -> FloatArray:
     """The mean information a 6x6 point-to-plane system (rotation first, then translation; any
     common scale) holds on the two tilt axes perpendicular to ``up``, with the translation free
-    (the Schur complement: a tilt about the scanner that a shift undoes is no information)."""
-    rotation, mixed, translation = hessian[:3, :3], hessian[:3, 3:], hessian[3:, 3:]
+    (the Schur complement: a tilt about the scanner that a shift undoes is no information).
+
+    One system (6, 6) with its ``up`` (3,) gives one number, a stack (n, 6, 6) with (n, 3) one
+    each: a joint solve weighs every scan's prior each round, and one call per scan (3,200 over the
+    rounds of a 400-scan relaxation) cost 0.15 s of CPU, 0.65 s under cProfile; ICP calls it with
+    one system per iteration. A translation block that cannot be inverted (a scan without pairs)
+    leaves the rotation block as it is.
+    """
+    hessian = np.asarray(hessian, dtype=np.float64)
+    up = np.asarray(up, dtype=np.float64)
+    reduced = _rotation_with_translation_free(hessian[..., :3, :3], hessian[..., :3, 3:], hessian[..., 3:, 3:])
+    across = np.eye(3) - up[..., :, None] * up[..., None, :]
+    return np.maximum(np.trace(across @ reduced @ across, axis1=-2, axis2=-1) / 2.0, 0.0)
+
+
+def _rotation_with_translation_free(rotation: FloatArray, mixed: FloatArray, translation: FloatArray) -> FloatArray:
+    """rotation - mixed inv(translation) mixedᵀ, per system; the rotation block itself where the
+    translation block is singular (solved one by one only then: a stack that holds one)."""
     try:
-        reduced = rotation - mixed @ np.linalg.solve(translation, mixed.T)
+        return rotation - mixed @ np.linalg.solve(translation, np.swapaxes(mixed, -1, -2))
     except np.linalg.LinAlgError:
-        reduced = rotation
-    across = np.eye(3) - np.outer(up, up)
-    return max(float(np.trace(across @ reduced @ across)) / 2.0, 0.0)
+        if translation.ndim == 2:
+            return rotation
+        return np.array(
+            [_rotation_with_translation_free(*system) for system in zip(rotation, mixed, translation, strict=True)]
+        )
 
 
 def tilt_normal_equations(

@@ -55,10 +55,10 @@ import numba
 import numpy as np
 from numpy.typing import NDArray
 
-from slam6d.attitude import TiltPrior, measured_up, tilt_information
+from slam6d.attitude import TiltPrior, measured_ups, tilt_information
 from slam6d.block_system import BlockSystem
 from slam6d.errors import RelaxationError
-from slam6d.geometry import Matrix, invert, make_pose, so3_exp, transform_points
+from slam6d.geometry import Matrix, invert, so3_exp, transform_points
 from slam6d.icp import correspondences, icp
 from slam6d.model import on_the_seen_side
 from slam6d.nn import build_index
@@ -294,7 +294,7 @@ class _ScanSystem:
     sums: FloatArray  # (pairs, 3): sum of r², of w r², point count
 
 
-def _scan_system(models: ScanModels, current: Sequence[Matrix], batch: _ScanBatch, robust_scale: float) -> _ScanSystem:
+def _scan_system(models: ScanModels, current: FloatArray, batch: _ScanBatch, robust_scale: float) -> _ScanSystem:
     """Normal-equation blocks of every pair (i, j) of ``batch`` from one query of scan i's plane sample.
 
     Data points ``p`` of scan j are placed in scan i's frame by inv(X_i) X_j and paired with the
@@ -331,17 +331,16 @@ def _edge_budget(
     0.1 cm and raised the RPE (0.57, 0.59 vs 0.56 cm); at full resolution the far-apart pairs do
     not agree with each other either, so favouring them does not make them agree.
     """
-    share = {(p.i, p.j): p.pairs / len(models.points[p.j]) for p in graph_pairs}
+    share = np.array([p.pairs / len(models.points[p.j]) for p in graph_pairs])
     total = config.pair_points * len(graph_pairs)
     if config.round_points > 0:
         total = min(total, config.round_points)
-    unit = total / max(sum(share.values()), 1e-9)
-    budget = {}
-    for key, s in share.items():
-        count = int(np.clip(unit * s, config.min_edge_points, config.edge_points))
-        budget[key] = (count, s**config.overlap_exponent / count)
-    mean = np.mean([c * w for c, w in budget.values()]) / np.mean([c for c, _ in budget.values()])
-    return {key: (c, w / mean) for key, (c, w) in budget.items()}
+    unit = total / max(float(share.sum()), 1e-9)
+    # every pair at once: one np.clip per pair (16,000 pairs at 400 scans, two samples) cost 0.7 s under cProfile
+    counts = np.clip(unit * share, config.min_edge_points, config.edge_points).astype(np.int64)
+    weights = share**config.overlap_exponent / counts
+    weights = weights / (np.mean(counts * weights) / np.mean(counts))
+    return {(p.i, p.j): (int(c), float(w)) for p, c, w in zip(graph_pairs, counts, weights, strict=True)}
 
 
 @dataclass
@@ -377,10 +376,11 @@ def _joint_step(
     roll and pitch (:func:`_add_tilt_prior`).
     """
     count = len(current)
+    placed = np.array(current)  # stacked once: every scan's batch takes its neighbours' poses from it
     if scheduler is None:
-        systems = [_scan_system(models, current, batch, robust_scale) for batch in batches]
+        systems = [_scan_system(models, placed, batch, robust_scale) for batch in batches]
     else:
-        relatives = [relative_poses(current, b.i, b.others) for b in batches]
+        relatives = [relative_poses(placed, b.i, b.others) for b in batches]
         parts = scheduler.map(
             _remote_scan_system,
             shared,
@@ -417,10 +417,12 @@ def _joint_step(
         if patterns is not None:
             patterns[held] = system
     step = system.solve(_damped(diag, config.damping), np.ascontiguousarray(blocks[:, :6, 6:]), rhs)
-    moved = {}
-    for k in range(count):
-        if k not in fixed and k not in unused:
-            moved[k] = current[k] @ make_pose(so3_exp(step[k, 3:]), step[k, :3])
+    movers = np.array([k for k in range(count) if k not in held], dtype=np.int64)
+    update = np.zeros((len(movers), 4, 4))  # every free scan's Exp([ρ, φ]) at once
+    update[:, :3, :3] = so3_exp(step[movers, 3:])
+    update[:, :3, 3] = step[movers, :3]
+    update[:, 3, 3] = 1.0
+    moved = dict(zip(movers.tolist(), placed[movers] @ update, strict=True))
     return _Round(moved, float(weight @ sums[:, 0]), float(weight @ sums[:, 1]), _plane_rms(sums))
 
 
@@ -478,13 +480,10 @@ def _add_tilt_prior(
     """
     free = np.ones(len(current), dtype=bool)
     free[list(held)] = False
-    weights = tilt.weights(
-        [
-            tilt_information(diag[k][np.ix_(_ROTATION_FIRST, _ROTATION_FIRST)], measured_up(current[int(k)])) / 2.0
-            for k in np.flatnonzero(free)
-        ]
-    )
-    prior, gradient, _ = tilt.terms(np.array([p[:3, :3] for p in current]), free, weights)
+    rotations = np.array([p[:3, :3] for p in current])
+    blocks = diag[free][:, _ROTATION_FIRST][:, :, _ROTATION_FIRST]
+    weights = tilt.weights(tilt_information(blocks, measured_ups(rotations[free])) / 2.0)
+    prior, gradient, _ = tilt.terms(rotations, free, weights)
     diag[:, 3:, 3:] += prior
     rhs[:, 3:] -= gradient
 
@@ -498,9 +497,10 @@ def _plane_rms(sums: FloatArray) -> float:
 
 def _round_residual(models: ScanModels, current: Sequence[Matrix], batches: Sequence[_ScanBatch]) -> float:
     """The rounds' residual at ``current`` without a step: the query of one more round."""
+    placed = np.array(current)
     return rms(
         [
-            plane_residuals(models, b.i, place(b.points, b.source, relative_poses(current, b.i, b.others)))
+            plane_residuals(models, b.i, place(b.points, b.source, relative_poses(placed, b.i, b.others)))
             for b in batches
         ]
     )

@@ -26,7 +26,7 @@ import numpy as np
 from cvxopt import cholmod
 from numpy.typing import NDArray
 
-from slam6d.attitude import TiltPrior, measured_up, tilt_information
+from slam6d.attitude import TiltPrior, measured_ups, tilt_information
 from slam6d.block_system import BlockSystem
 from slam6d.errors import DisconnectedGraphError, RelaxationError
 from slam6d.geometry import Matrix, invert, skew, so3_exp, so3_log
@@ -300,7 +300,7 @@ def _tilt_weights(tilt: TiltPrior, e: _Edges, rot: NDArray) -> NDArray:
     steps = np.flatnonzero(e.j == e.i + 1)
     steps = steps if len(steps) else np.arange(len(e.i))
     order = np.array([3, 4, 5, 0, 1, 2])
-    return tilt.weights([tilt_information(e.info[m][np.ix_(order, order)], measured_up(rot[e.j[m]])) for m in steps])
+    return tilt.weights(tilt_information(e.info[steps][:, order][:, :, order], measured_ups(rot[e.j[steps]])))
 
 
 _SEED_GAIN = 0.1  # seed the rotations when that cuts their share of χ² at least tenfold

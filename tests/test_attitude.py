@@ -19,6 +19,7 @@ from slam6d.attitude import (
     heading_only,
     measured_up,
     tilt_error_deg,
+    tilt_information,
 )
 from slam6d.errors import Slam6dError
 from slam6d.geometry import invert, make_pose, pose_from_xyzrpy, rot_x, rot_y, so3_exp, xyzrpy_from_pose
@@ -210,3 +211,32 @@ def test_holding_closed_loops_keeps_the_measured_tilt() -> None:
     tilt = [tilt_error_deg(p, measured_up(t)) for p, t in zip(held, truth, strict=True)]
     assert max(tilt) < 0.35 and math.sqrt(np.mean(np.square(tilt))) < 0.15, tilt
     assert max(abs(p[2, 3] - t[2, 3]) for p, t in zip(held, truth, strict=True)) < 0.15
+
+
+def test_tilt_information_of_many_systems_at_once_is_each_ones_schur_complement_across_up() -> None:
+    """What LUM and the pose graph weigh every scan's reading by, computed for all scans in one
+    call: each value is the information on the two axes across that scan's up once its translation
+    is free, and a system whose translation holds nothing keeps its rotation block."""
+    rng = np.random.default_rng(4)
+    count = 7
+    factors = rng.normal(size=(count, 9, 6))
+    hessians = np.einsum("nki,nkj->nij", factors, factors)  # positive definite 6x6, rotation first
+    hessians[2, 3:, :] = 0.0  # one scan whose pairs hold no translation: its rotation alone counts
+    hessians[2, :, 3:] = 0.0
+    ups = rng.normal(size=(count, 3))
+    ups /= np.linalg.norm(ups, axis=1, keepdims=True)
+    many = tilt_information(hessians, ups)
+    assert many.shape == (count,)
+    for k in range(count):
+        rotation, mixed, translation = hessians[k, :3, :3], hessians[k, :3, 3:], hessians[k, 3:, 3:]
+        reduced = rotation if k == 2 else rotation - mixed @ np.linalg.inv(translation) @ mixed.T
+        # the two axes across up: any orthonormal pair perpendicular to it
+        across = np.linalg.svd(np.eye(3) - np.outer(ups[k], ups[k]))[0][:, :2]
+        expected = np.trace(across.T @ reduced @ across) / 2.0
+        assert many[k] == pytest.approx(expected, rel=1e-9)
+        assert float(tilt_information(hessians[k], ups[k])) == pytest.approx(expected, rel=1e-12)
+    # a shift that undoes a tilt is no information on it: a rotation block fully explained by the
+    # translation's coupling leaves nothing
+    lever = rng.normal(size=(3, 3))
+    coupled = np.block([[lever @ lever.T, lever], [lever.T, np.eye(3)]])
+    assert float(tilt_information(coupled, np.array([0.0, 0.0, 1.0]))) == pytest.approx(0.0, abs=1e-12)

@@ -83,6 +83,70 @@ def test_reduced_cholesky_matches_dense_solves_as_values_change_on_one_pattern()
         np.testing.assert_allclose(got.ravel(), want, rtol=1e-8, atol=1e-10)
 
 
+def _dense_loop_pairs(count: int, neighbours: int, rng: np.random.Generator) -> list[tuple[int, int]]:
+    """A chain whose every pose also has ``neighbours`` partners all along it (a dense loop's LUM
+    graph): no pose is interior, the reduced system is every free pose."""
+    pairs = [(k, k + 1) for k in range(count - 1)]
+    for k in range(count):
+        for j in rng.choice(count, neighbours, replace=False):
+            if abs(int(j) - k) > 1:
+                pairs.append((k, int(j)))
+    return pairs
+
+
+def test_a_large_reduced_system_reuses_its_factor_and_still_equals_dense_solves() -> None:
+    """Rounds of a relaxation over one pattern: the matrices differ by each edge's weight (Cauchy's,
+    re-drawn pairs), and all but the first solve run on an earlier factor. Each step equals a dense
+    solve of its own matrix; a matrix unlike the factored one (fresh random blocks) is refactored
+    and solved as exactly; one that is singular is still reported as such."""
+    rng = np.random.default_rng(11)
+    count = 40
+    pairs = _dense_loop_pairs(count, 4, rng)
+    ei = np.array([i for i, _ in pairs])
+    ej = np.array([j for _, j in pairs])
+    system = BlockSystem(count, {0}, ei, ej, refactor_above=0)
+    assert len(system.interior) == 0
+    free = np.arange(6, 6 * count)
+
+    def built(terms: list[np.ndarray], weights: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The blocks of edge e's 12x12 term weighted by weights[e], and the same matrix dense."""
+        diag = np.zeros((count, 6, 6))
+        dense = np.zeros((6 * count, 6 * count))
+        for (i, j), term, weight in zip(pairs, terms, weights, strict=True):
+            h = term * weight
+            diag[i] += h[:6, :6]
+            diag[j] += h[6:, 6:]
+            for (a, b), block in (((i, i), h[:6, :6]), ((i, j), h[:6, 6:]), ((j, i), h[6:, :6]), ((j, j), h[6:, 6:])):
+                dense[6 * a : 6 * a + 6, 6 * b : 6 * b + 6] += block
+        off = np.array([term[:6, 6:] * weight for term, weight in zip(terms, weights, strict=True)])
+        return diag, off, dense
+
+    def check(terms: list[np.ndarray], weights: np.ndarray) -> None:
+        """The system's solve equals the dense solve of the same matrix."""
+        diag, off, dense = built(terms, weights)
+        rhs = rng.normal(size=(count, 6))
+        want = np.zeros(6 * count)
+        want[free] = np.linalg.solve(dense[np.ix_(free, free)], rhs.ravel()[free])
+        np.testing.assert_allclose(system.solve(diag, off, rhs).ravel(), want, rtol=1e-8, atol=1e-10)
+
+    def random_terms(rows: int, scale: float) -> list[np.ndarray]:
+        return [(lambda a: scale * a.T @ a)(rng.normal(size=(rows, 12))) for _ in pairs]
+
+    terms = random_terms(9, 1.0)
+    solves = 6
+    for _ in range(solves):
+        check(terms, rng.uniform(0.5, 2.0, len(pairs)))
+    assert system.factorisations < solves  # the factor was reused
+    held = system.factorisations
+    check(random_terms(7, 100.0), np.ones(len(pairs)))  # another matrix entirely
+    assert system.factorisations == held + 1  # too far from the factor held: refactored
+    weights = np.ones(len(pairs))
+    weights[(ei == 5) | (ej == 5)] = 0.0  # pose 5 unconstrained: every block of it gone
+    diag, off, _ = built(terms, weights)
+    with pytest.raises(RelaxationError, match="singular"):
+        system.solve(diag, off, np.ones((count, 6)))
+
+
 def test_singular_reduced_system_is_reported() -> None:
     """Every pose is a loop end, so the rank deficiency reaches the Cholesky of the reduced system."""
     count = 6

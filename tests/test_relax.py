@@ -30,8 +30,10 @@ from slam6d.relax import (
     RelaxationConfig,
     ScanModels,
     carry_forward,
+    gathered,
     neighbour_graph,
     pair_residual,
+    spread_evenly,
 )
 from slam6d.simultaneous import simultaneous_matching
 from tests.simulated_loop import simulated_loop
@@ -610,3 +612,22 @@ def test_the_trajectory_benchmark_takes_relaxation_settings_by_name() -> None:
         relax_settings(["coarse_fractio=1.0"])
     with pytest.raises(SystemExit, match="FIELD=VALUE"):
         relax_settings(["coarse_fraction"])
+
+
+def test_every_pairs_own_sample_is_the_scans_thinned_copy_drawn_for_all_pairs_at_once() -> None:
+    """A LUM budget gives every pair a sample size of its own; the samples, drawn for all pairs of a
+    scan at once, are exactly the points ``ScanModels.thinned`` spreads over each scan (linspace
+    from the first point to the last, rounded), a scan with fewer points than asked giving all."""
+    rng = np.random.default_rng(2)
+    points = [rng.normal(size=(size, 3)) for size in (1, 7, 250, 1001, 4000)]
+    models = ScanModels(points, ICPConfig())
+    others = [4, 0, 3, 1, 2, 3]
+    counts = [333, 5, 1001, 7, 1, 2]  # over, at and under each scan's size; one point; two
+    stacked, source = gathered(models, others, counts)
+    expected = [models.thinned(j, c) for j, c in zip(others, counts, strict=True)]
+    np.testing.assert_array_equal(stacked, np.concatenate(expected))
+    np.testing.assert_array_equal(source, np.repeat(np.arange(len(others)), [len(e) for e in expected]))
+    lengths, asked = np.array([1001, 4000, 250, 2]), np.array([1, 333, 249, 2])
+    index, of = spread_evenly(lengths, asked)
+    for k, (length, count) in enumerate(zip(lengths, asked, strict=True)):
+        np.testing.assert_array_equal(index[of == k], np.linspace(0, length - 1, count).round().astype(np.int64))
