@@ -107,17 +107,24 @@ def test_far_outliers_are_rejected_by_the_max_distance(method: str, model_index:
     assert pose_difference(unbounded.transform, MOTION)[0] > 0.05
 
 
+def _with_points_in_front_of_its_wall(model: np.ndarray) -> np.ndarray:
+    """The model's moved copy plus 200 points of its x = 5 m wall moved 12-18 cm in front of it: within
+    the max distance, far off the plane they pair with (what a wrong model plane or a surface the
+    model never saw gives)."""
+    rng = np.random.default_rng(4)
+    wall = model[np.abs(model[:, 0] - 5.0) < 1e-9]
+    near = wall[rng.choice(len(wall), 200, replace=False)]
+    near[:, 0] -= rng.uniform(0.12, 0.18, len(near))
+    return np.vstack([copy_of(model), copy_of(near)])
+
+
 def test_residual_gate_leaves_out_pairs_off_their_planes_and_still_counts_them(
     model_index: ModelIndex, model: np.ndarray
 ) -> None:
     """Points within the max distance of a wall but 12-18 cm in front of it (what a wrong model plane
     or a surface the model never saw pairs like) pull point-to-plane ICP towards them when kept;
     ``residual_gate`` leaves them out of the steps, and the fitness still counts them as paired."""
-    rng = np.random.default_rng(4)
-    wall = model[np.abs(model[:, 0] - 5.0) < 1e-9]  # the room's x = 5 m wall
-    near = wall[rng.choice(len(wall), 200, replace=False)]
-    near[:, 0] -= rng.uniform(0.12, 0.18, len(near))
-    data = np.vstack([copy_of(model), copy_of(near)])
+    data = _with_points_in_front_of_its_wall(model)
     config = ICPConfig(distance_schedule=(1.0, 0.5), max_iterations=200, data_voxel_size=0.0)
     kept = icp(model_index, data, np.eye(4), config)
     gated = icp(model_index, data, np.eye(4), replace(config, residual_gate=3.0))
@@ -131,11 +138,7 @@ def test_robust_weights_shrink_the_pull_of_pairs_off_their_planes(model_index: M
     converged with every pair, ICP settles again with each pair weighted by Geman-McClure's
     1 / (1 + (r / 5 cm)²)², so the near points weigh 0.5-2 % and barely pull; every pair is still
     counted."""
-    rng = np.random.default_rng(4)
-    wall = model[np.abs(model[:, 0] - 5.0) < 1e-9]
-    near = wall[rng.choice(len(wall), 200, replace=False)]
-    near[:, 0] -= rng.uniform(0.12, 0.18, len(near))
-    data = np.vstack([copy_of(model), copy_of(near)])
+    data = _with_points_in_front_of_its_wall(model)
     config = ICPConfig(distance_schedule=(1.0, 0.5), max_iterations=200, data_voxel_size=0.0)
     kept = icp(model_index, data, np.eye(4), config)
     weighted = icp(model_index, data, np.eye(4), replace(config, robust_scale=0.05))

@@ -266,6 +266,29 @@ def test_lum_reports_the_residual_at_the_final_poses_and_stops_once_settled(loop
     assert absolute_trajectory_error(settled.poses, sim.truth, align=False).rmse < 0.005
 
 
+def _noisy_start(truth: list[np.ndarray], offset: float, angle: float) -> list[np.ndarray]:
+    """The truth with every scan but the first moved by ``offset`` metres and ``angle`` radians
+    (seeded, so a thin-rounds test and its full-sample twin start alike)."""
+    rng = np.random.default_rng(5)
+    return [truth[0]] + [_noisy(p, rng, offset, angle) for p in truth[1:]]
+
+
+def _queried_points_per_round(monkeypatch: pytest.MonkeyPatch) -> list[int]:
+    """A list that receives, per LUM round, how many data points the round queries: what tells the
+    thin sample's rounds from the full sample's."""
+    import slam6d.lum as lum
+
+    queried: list[int] = []
+    joint_step = lum._joint_step
+
+    def counted(models, current, batches, *args, **kwargs):  # type: ignore[no-untyped-def]
+        queried.append(sum(len(b.points) for b in batches))
+        return joint_step(models, current, batches, *args, **kwargs)
+
+    monkeypatch.setattr(lum, "_joint_step", counted)
+    return queried
+
+
 @pytest.mark.parametrize(("offset", "angle"), [(0.02, 0.2), (0.08, 0.8)])
 def test_lum_takes_a_far_start_in_thin_rounds_and_settles_in_two_full_ones(
     loop_scans,  # type: ignore[no-untyped-def]
@@ -278,19 +301,9 @@ def test_lum_takes_a_far_start_in_thin_rounds_and_settles_in_two_full_ones(
     sample (``coarse_fraction``): a start 4x farther off costs more thin rounds, yet the full sample
     is queried in exactly two rounds either way, and the result is as close to the truth as with
     every round on the full sample (whose rounds do grow with the start's error)."""
-    import slam6d.lum as lum
-
     sim, models = loop_scans
-    rng = np.random.default_rng(5)
-    start = [sim.truth[0]] + [_noisy(p, rng, offset, np.radians(angle)) for p in sim.truth[1:]]
-    queried: list[int] = []
-    joint_step = lum._joint_step
-
-    def counted(models, current, batches, *args, **kwargs):  # type: ignore[no-untyped-def]
-        queried.append(sum(len(b.points) for b in batches))
-        return joint_step(models, current, batches, *args, **kwargs)
-
-    monkeypatch.setattr(lum, "_joint_step", counted)
+    start = _noisy_start(sim.truth, offset, np.radians(angle))
+    queried = _queried_points_per_round(monkeypatch)
     thin = lum_relaxation(models, start, fixed=[0], config=RelaxationConfig())
     full_size = max(queried)
     thin_rounds = [n for n in queried if n < full_size]
@@ -333,20 +346,10 @@ def test_lum_thin_first_rounds_change_the_path_not_where_it_converges(
     With the default settle tests the two end 1.7-2.1 mm apart here, and BALM hall's RPE reads
     0.55 against 0.53 cm: not another optimum but two stops short of the same one, each where its
     settle tests first fired (docs/scale.md, "Where the rounds stop")."""
-    import slam6d.lum as lum
-
     sim, models = loop_scans
-    rng = np.random.default_rng(5)
-    start = [sim.truth[0]] + [_noisy(p, rng, offset, np.radians(angle)) for p in sim.truth[1:]]
+    start = _noisy_start(sim.truth, offset, np.radians(angle))
     unsettled = RelaxationConfig(tolerance=0.0, settle_fraction=0.0, chi2_tolerance=0.0, max_rounds=16)
-    queried: list[int] = []
-    joint_step = lum._joint_step
-
-    def counted(models, current, batches, *args, **kwargs):  # type: ignore[no-untyped-def]
-        queried.append(sum(len(b.points) for b in batches))
-        return joint_step(models, current, batches, *args, **kwargs)
-
-    monkeypatch.setattr(lum, "_joint_step", counted)
+    queried = _queried_points_per_round(monkeypatch)
     thin = lum_relaxation(models, start, fixed=[0], config=unsettled)
     assert sum(n < 0.35 * max(queried) for n in queried) >= 2  # the path did start on the thin sample
     full = lum_relaxation(models, start, fixed=[0], config=replace(unsettled, coarse_fraction=1.0))
@@ -369,19 +372,9 @@ def test_lum_settled_on_movement_ends_where_full_sample_rounds_end(
     the scans of the largest displacement of a scan's points) of one with every round on the full
     sample, in fewer rounds on the full sample. Settled on the robust cost (the default) the two end
     2.1 and 1.7 mm apart here (docs/scale.md, "Where the rounds stop")."""
-    import slam6d.lum as lum
-
     sim, models = loop_scans
-    rng = np.random.default_rng(5)
-    start = [sim.truth[0]] + [_noisy(p, rng, offset, np.radians(angle)) for p in sim.truth[1:]]
-    queried: list[int] = []
-    joint_step = lum._joint_step
-
-    def counted(models, current, batches, *args, **kwargs):  # type: ignore[no-untyped-def]
-        queried.append(sum(len(b.points) for b in batches))
-        return joint_step(models, current, batches, *args, **kwargs)
-
-    monkeypatch.setattr(lum, "_joint_step", counted)
+    start = _noisy_start(sim.truth, offset, np.radians(angle))
+    queried = _queried_points_per_round(monkeypatch)
     config = RelaxationConfig(settle_on="movement")
     thin = lum_relaxation(models, start, fixed=[0], config=config)
     full_size = max(queried)
