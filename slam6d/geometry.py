@@ -27,10 +27,14 @@ RIGID_TOLERANCE = 1e-4
 
 
 def make_pose(rotation: ArrayLike, translation: ArrayLike) -> Matrix:
-    """Assemble a 4x4 pose from a 3x3 rotation and a 3-vector."""
-    pose = np.eye(4)
-    pose[:3, :3] = rotation
-    pose[:3, 3] = np.asarray(translation, dtype=np.float64).reshape(3)
+    """Assemble a 4x4 pose from a 3x3 rotation and a 3-vector, or a stack of poses (n, 4, 4) from
+    stacks of them ((n, 3, 3) and (n, 3)): a relaxation round moves every free scan at once."""
+    rotation = np.asarray(rotation, dtype=np.float64)
+    stack = rotation.shape[:-2]
+    pose = np.zeros((*stack, 4, 4))
+    pose[..., :3, :3] = rotation
+    pose[..., :3, 3] = np.asarray(translation, dtype=np.float64).reshape(*stack, 3)
+    pose[..., 3, 3] = 1.0
     return pose
 
 

@@ -58,7 +58,7 @@ from numpy.typing import NDArray
 from slam6d.attitude import TiltPrior, measured_ups, tilt_information
 from slam6d.block_system import BlockSystem
 from slam6d.errors import RelaxationError
-from slam6d.geometry import Matrix, invert, so3_exp, transform_points
+from slam6d.geometry import Matrix, invert, make_pose, so3_exp, transform_points
 from slam6d.icp import correspondences, icp
 from slam6d.model import on_the_seen_side
 from slam6d.nn import build_index
@@ -418,10 +418,7 @@ def _joint_step(
             patterns[held] = system
     step = system.solve(_damped(diag, config.damping), np.ascontiguousarray(blocks[:, :6, 6:]), rhs)
     movers = np.array([k for k in range(count) if k not in held], dtype=np.int64)
-    update = np.zeros((len(movers), 4, 4))  # every free scan's Exp([ρ, φ]) at once
-    update[:, :3, :3] = so3_exp(step[movers, 3:])
-    update[:, :3, 3] = step[movers, :3]
-    update[:, 3, 3] = 1.0
+    update = make_pose(so3_exp(step[movers, 3:]), step[movers, :3])  # every free scan's Exp([ρ, φ]) at once
     moved = dict(zip(movers.tolist(), placed[movers] @ update, strict=True))
     return _Round(moved, float(weight @ sums[:, 0]), float(weight @ sums[:, 1]), _plane_rms(sums))
 

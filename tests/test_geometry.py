@@ -141,3 +141,17 @@ def test_cross_rows_is_numpys_cross_to_the_bit(seed: int, rows: int) -> None:
     jacobian = np.full((rows, 6), np.nan)
     assert g.cross_rows(a, b, out=jacobian[:, :3]) is not None
     assert np.array_equal(jacobian[:, :3], expected) and np.isnan(jacobian[:, 3:]).all()
+
+
+def test_make_pose_of_stacks_is_each_pose_made_alone() -> None:
+    """A relaxation round moves every free scan at once: a stack of rotations and translations gives
+    the poses one call per scan would, and one of each gives a single 4x4 pose."""
+    rng = np.random.default_rng(3)
+    rotations = g.so3_exp(rng.normal(size=(5, 3)))
+    translations = rng.normal(size=(5, 3))
+    stacked = g.make_pose(rotations, translations)
+    assert stacked.shape == (5, 4, 4)
+    for pose, rotation, translation in zip(stacked, rotations, translations, strict=True):
+        np.testing.assert_array_equal(pose, g.make_pose(rotation, translation))
+    single = g.make_pose(rotations[0], translations[0].reshape(3, 1))
+    assert single.shape == (4, 4) and single[3].tolist() == [0.0, 0.0, 0.0, 1.0]
