@@ -308,14 +308,12 @@ class BlockSystem:
     def _solve_reduced(self, values: NDArray[np.float64], rhs: NDArray[np.float64]) -> NDArray[np.float64]:
         """The reduced system: preconditioned by an earlier factor where it is large (class docstring),
         else by a Cholesky that reuses the ordering and symbolic factor worked out once."""
-        stored = np.asarray(
-            np.bincount(self._slot, weights=values[self._keep], minlength=len(self._matrix)), np.float64
-        )
+        # the values replace the matrix's; a factor held stays that of earlier ones
+        self._matrix.V = cvxopt.matrix(np.bincount(self._slot, weights=values[self._keep], minlength=len(self._matrix)))
         if self._factored and self.size > self.refactor_above:
-            solution = self._preconditioned(stored, rhs)
+            solution = self._preconditioned(rhs)
             if solution is not None:
                 return solution
-        self._matrix.V = cvxopt.matrix(stored)
         self.factorisations += 1
         self._factored = False  # until the factorisation below succeeds
         try:
@@ -340,11 +338,11 @@ class BlockSystem:
         cholmod.solve(self._symbolic, solution)
         return np.asarray(solution).ravel()
 
-    def _preconditioned(self, stored: NDArray[np.float64], rhs: NDArray[np.float64]) -> NDArray[np.float64] | None:
-        """Conjugate gradients on the matrix of ``stored`` values, preconditioned by the factor held;
-        None when they do not reach ``CG_TOLERANCE`` within ``CG_ITERATIONS`` (or meet a direction
-        of no curvature: the matrix is no longer positive definite), which leaves it to a refactor."""
-        self._matrix.V = cvxopt.matrix(stored)  # the factor held is of earlier values
+    def _preconditioned(self, rhs: NDArray[np.float64]) -> NDArray[np.float64] | None:
+        """Conjugate gradients on the matrix's current values, preconditioned by the factor held (of
+        earlier values); None when they do not reach ``CG_TOLERANCE`` within ``CG_ITERATIONS`` (or
+        meet a direction of no curvature: the matrix is no longer positive definite), which leaves
+        it to a refactor."""
         out = cvxopt.matrix(0.0, (self.size, 1))
 
         def product(vector: NDArray[np.float64]) -> NDArray[np.float64]:
