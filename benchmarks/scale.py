@@ -85,7 +85,6 @@ import argparse
 import json
 import os
 import re
-import resource
 import subprocess
 import sys
 from dataclasses import dataclass, replace
@@ -94,6 +93,9 @@ from typing import Any
 
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the benchmarks package beside the engine
+
+from benchmarks.child_process import children_cpu
 from slam6d import nn
 from slam6d.geometry import UOS, Matrix, invert, path_lengths, pose_difference, transform_points
 from slam6d.icp import gate_residuals, point_to_plane_step, robust_weights
@@ -144,10 +146,9 @@ def session(work: Path, case: str, scans: int) -> Path:
 
 def run(directory: Path, case: str, scans: int, extra: list[str]) -> Run:
     out = directory.parent / f"{directory.name}_out{'_' + '_'.join(extra).replace('/', '') if extra else ''}"
-    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    before = children_cpu()
     done = cli("run", str(directory), "--format", "uos", "--out", str(out), *extra)
-    after = resource.getrusage(resource.RUSAGE_CHILDREN)
-    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    cpu = children_cpu() - before
     if done.returncode != 0:
         raise SystemExit(f"slam6d run failed on {directory}:\n{done.stdout}\n{done.stderr}")
     report = json.loads((out / "report.json").read_text())
