@@ -87,6 +87,7 @@ import os
 import re
 import subprocess
 import sys
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -107,6 +108,7 @@ from slam6d.model import NORMAL_NEIGHBOURS, ModelIndex, fused_model
 from slam6d.normals import cell_normals, estimate_normals
 from slam6d.octree import reduce_points
 from slam6d.pipeline import Pipeline, PipelineConfig
+from slam6d.relax import RelaxationConfig
 from slam6d.simulate import SimulationConfig, simulated_scans
 
 CASES = {
@@ -370,6 +372,43 @@ def profile_relaxation(directory: Path) -> None:
     )
 
 
+def relaxation_rounds(directory: Path, relax: RelaxationConfig) -> None:
+    """Register ``directory`` as ``slam6d run`` does up to its relaxation, then run its LUM
+    relaxation with the settings ``relax`` and print, after each round, the ATE and the path's
+    length over the truth's: how fast the rounds close the distance (docs/scale.md, "Mixing the
+    rounds")."""
+    import time
+    from dataclasses import replace
+
+    from slam6d.attitude import declared_tilt_noise
+    from slam6d.lum import lum_relaxation
+    from slam6d.pipeline import share_registration_models
+
+    config = PipelineConfig(tilt_noise_deg=declared_tilt_noise(directory))  # as `slam6d run` on the folder
+    pipeline = Pipeline(read_sequence(directory, "uos"), replace(config, relaxation="none"))
+    pipeline.run()
+    share_registration_models(pipeline.models, config, "lum", pipeline.registration_model)
+    truth = [UOS.pose_to_canonical(p) for p in read_kitti_poses(directory / "ground_truth_kitti.txt")]
+    length = float(path_lengths(truth)[-1])
+    rows: list[str] = []
+
+    def observe(round_: int, poses: Sequence[Matrix]) -> None:
+        ate = 100 * absolute_trajectory_error(list(poses), truth).rmse
+        rows.append(f"{round_}: {ate:.2f} cm, length x{float(path_lengths(list(poses))[-1]) / length:.4f}")
+
+    before = 100 * absolute_trajectory_error(pipeline.poses, truth).rmse
+    began = time.process_time()
+    result = lum_relaxation(
+        pipeline.models, pipeline.poses, links=pipeline.links, config=relax, tilt=pipeline.tilt, observe=observe
+    )
+    seconds = time.process_time() - began
+    print(
+        f"| {directory.name} | {before:.2f} cm, length x{float(path_lengths(pipeline.poses)[-1]) / length:.4f}"
+        f" | {'; '.join(rows)} | {result.iterations} | {seconds:.1f} s | {os.getloadavg()[0]:.1f} |",
+        flush=True,
+    )
+
+
 def stage_cpu(directory: Path) -> None:
     """``slam6d run``'s pipeline on ``directory`` in this process (configured as the command line
     configures it for a folder: its declared inclinometer), with the CPU time (user + system of
@@ -607,7 +646,37 @@ def main() -> None:
     parser.add_argument(
         "--relax-from-truth", action="store_true", help="only: the run's relaxation started from the campus's truth"
     )
+    parser.add_argument(
+        "--rounds", action="store_true", help="only: each session's LUM relaxation, its error after every round"
+    )
+    parser.add_argument(
+        "--relax",
+        action="append",
+        default=[],
+        metavar="FIELD=VALUE",
+        help="with --rounds: a RelaxationConfig setting, e.g. acceleration_depth=0 (repeatable)",
+    )
+    parser.add_argument(
+        "--sessions",
+        type=Path,
+        nargs="*",
+        default=[],
+        help="with --rounds: these simulated folders (uos, with ground_truth_kitti.txt) instead of --loop/--campus",
+    )
     args = parser.parse_args()
+    if args.rounds:
+        from benchmarks.trajectory import relax_settings
+
+        print("| session | start | after each round | rounds | CPU | load |")
+        print("|---|---|---|---|---|---|")
+        folders = args.sessions or [
+            session(args.work, case, scans)
+            for case, counts in (("loop", args.loop), ("campus", args.campus))
+            for scans in counts
+        ]
+        for folder in folders:
+            relaxation_rounds(folder, relax_settings(args.relax))
+        return
     if args.profile_relaxation:
         print(f"LUM relaxation under cProfile, CPU seconds, {os.cpu_count()} cores (cProfile itself adds some)")
         print(

@@ -68,7 +68,8 @@ class RelaxationConfig:
     overlap_exponent: float = 1.0  # a pair's weight in LUM grows with its overlap to this power
     pair_points: int = 250  # data points per LUM round and graph pair on average, shared in proportion to overlap
     round_points: int = 0  # a cap on the data points per LUM round (0 = none)
-    first_scale: float = 0.25  # Cauchy scale of the first LUM round, relative to the ICP max distance
+    min_round_points: int = 300_000  # and a floor: few scans' pairs leave the sample's noise in the poses
+    first_scale: float = 0.2  # first LUM round's Cauchy scale / the ICP max distance (x 0.25 m: the final scale)
     tolerance: float = 0.0005  # metres: stop LUM rounds when no scan moves more
     settle_fraction: float = 0.2  # or when none moves more than this fraction of the final robust scale (lum._settled)
     chi2_tolerance: float = 0.005  # or when a round at the final robust scale changes the robust cost less (fraction)
@@ -77,6 +78,8 @@ class RelaxationConfig:
     coarse_fraction: float = 0.25  # LUM's first rounds sample this share of pair_points (1 = all rounds at full)
     coarse_chi2_tolerance: float = 0.05  # until a round changes their robust cost less: then the full sample
     settle_on: str = "cost"  # what ends LUM's rounds: "cost" or "movement" (the scans', lum._settled)
+    steady_tolerance: float = 0.005  # metres: full rounds go on while carrying the scans one way more (lum._settled)
+    acceleration_depth: int = 1  # LUM: Anderson mixing of this many past rounds (0 = plain rounds; lum._Accelerator)
 
     def __post_init__(self) -> None:
         # a share above 1 would silently mean "every round on the full sample"; say so instead
@@ -88,6 +91,12 @@ class RelaxationConfig:
             raise ValueError(f"settle_on must be 'cost' or 'movement', got {self.settle_on!r}")
         if not (self.coarse_chi2_tolerance >= 0 and math.isfinite(self.coarse_chi2_tolerance)):
             raise ValueError(f"coarse_chi2_tolerance must be a fraction >= 0, got {self.coarse_chi2_tolerance}")
+        if self.acceleration_depth < 0:
+            raise ValueError(f"acceleration_depth must be >= 0 (0 = plain rounds), got {self.acceleration_depth}")
+        if self.min_round_points < 0:
+            raise ValueError(f"min_round_points must be >= 0 (0 = no floor), got {self.min_round_points}")
+        if not self.steady_tolerance >= 0:  # inf: the cost's test alone; NaN would never settle
+            raise ValueError(f"steady_tolerance must be metres >= 0, got {self.steady_tolerance}")
 
 
 @dataclass
