@@ -24,8 +24,10 @@ rounds needed grow with how far off the relaxation starts: 5 rounds at 100 scans
 loop closing), 8 at 400 (25.4 cm), each round's work following the pairs. Because that
 contraction is steady, each round's result is mixed with the round's before by Anderson's
 method (``acceleration_depth``, :class:`_Accelerator`, :mod:`slam6d.acceleration`): at 400 scans
-the second full-scale round then lands at 2.3 cm instead of 8.7 cm, and LUM ends in 6 rounds at
-0.16 cm instead of 8 at 0.19 cm (docs/scale.md, "Mixing the rounds"). The first
+the second round then ends at 2.3 cm instead of 8.0 cm, and LUM ends in 6 rounds at 0.15 cm
+instead of 8 at 0.19 cm (docs/scale.md, "Mixing the rounds"). A round samples at least
+``min_round_points``: on a few scans the per-pair sample is so small that its own optimum lies
+centimetres off the scans'. The first
 rounds also run on a thin sample (``coarse_fraction`` of ``pair_points``, the same pairs)
 until a round changes its robust cost by less than ``coarse_chi2_tolerance``; the full sample then
 refines in two or three rounds whatever the start (docs/scale.md, "The rounds' sample"). The
@@ -38,10 +40,11 @@ rounds still move the scans by millimetres (the robust cost is mostly the scanne
 400 scans it changed by 0.26 % in the round that took the ATE from 0.42 to 0.26 cm), so each
 relaxation ends part of the way along its own path: from the start with every round on the full
 sample, from the thin sample's own optimum after thin rounds (a few millimetres off the full
-sample's; on BALM hall its consecutive RPE is 0.74 cm). Hence BALM's RPE 0.55 cm with the thin
-rounds and 0.53 cm without: run without settling, both reach the same poses (0.03 mm apart on
-average), RPE 0.535 cm / 0.042°, of which the full-sample-only stop lies no nearer than the default
-(1.6 vs 1.1 mm on average). ``settle_on="movement"`` ends the rounds on the scans' movement
+sample's; on BALM hall its consecutive RPE is 0.74 cm). Hence BALM's RPE was 0.55 cm with the
+thin rounds and 0.53 cm without: run without settling, both reach the same poses (0.03 mm apart on
+average), RPE 0.535 cm / 0.042°, where the mixed rounds now end too (0.535 cm). The full rounds do
+not settle on the cost while they still carry the scans one way (``steady_tolerance``,
+:func:`_settled`). ``settle_on="movement"`` ends the rounds on the scans' movement
 instead (:func:`_settled`): the two then end 0.23 mm apart on BALM, but it costs the 400 scans 50 %
 more CPU, and on a VLP-16 campus, whose rounds keep moving scans by centimetres, it let relaxing a
 run's poses again drift off the map, so the cost stays the default (docs/scale.md, "The rounds'
