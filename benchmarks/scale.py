@@ -146,6 +146,25 @@ def session(work: Path, case: str, scans: int) -> Path:
     return directory
 
 
+def ground_truth(directory: Path) -> list[Matrix]:
+    """The simulator's ground truth of a session folder, in the engine's canonical frame."""
+    return [UOS.pose_to_canonical(p) for p in read_kitti_poses(directory / "ground_truth_kitti.txt")]
+
+
+def registered_until_relaxation(directory: Path) -> tuple[PipelineConfig, Pipeline]:
+    """``directory`` run as ``slam6d run`` runs it (its declared inclinometer) up to its relaxation:
+    registered, loops closed, and the registration models handed to LUM's rounds as the relaxation
+    stage hands them over (:func:`slam6d.pipeline.share_registration_models`)."""
+    from slam6d.attitude import declared_tilt_noise
+    from slam6d.pipeline import share_registration_models
+
+    config = PipelineConfig(tilt_noise_deg=declared_tilt_noise(directory))
+    pipeline = Pipeline(read_sequence(directory, "uos"), replace(config, relaxation="none"))
+    pipeline.run()
+    share_registration_models(pipeline.models, config, "lum", pipeline.registration_model)
+    return config, pipeline
+
+
 def run(directory: Path, case: str, scans: int, extra: list[str]) -> Run:
     out = directory.parent / f"{directory.name}_out{'_' + '_'.join(extra).replace('/', '') if extra else ''}"
     before = children_cpu()
@@ -154,7 +173,7 @@ def run(directory: Path, case: str, scans: int, extra: list[str]) -> Run:
     if done.returncode != 0:
         raise SystemExit(f"slam6d run failed on {directory}:\n{done.stdout}\n{done.stderr}")
     report = json.loads((out / "report.json").read_text())
-    truth = [UOS.pose_to_canonical(p) for p in read_kitti_poses(directory / "ground_truth_kitti.txt")]
+    truth = ground_truth(directory)
     estimate = [UOS.pose_to_canonical(p) for p in read_kitti_poses(out / "poses_kitti.txt")]
     unrelaxed = [UOS.pose_to_canonical(unrelaxed_pose(out / f"{name}.frames")) for name in scan_names(report)]
     return Run(
@@ -221,7 +240,7 @@ def loop_report(directory: Path, out: Path) -> None:
     """Where a campus run's error lies and what its loops did (module docstring, ``--loop-report``)."""
     report = json.loads((out / "report.json").read_text())
     names = scan_names(report)
-    truth = [UOS.pose_to_canonical(p) for p in read_kitti_poses(directory / "ground_truth_kitti.txt")]
+    truth = ground_truth(directory)
     stages = {
         "registration": [UOS.pose_to_canonical(registered_pose(out / f"{n}.frames")) for n in names],
         "loop closing": [UOS.pose_to_canonical(unrelaxed_pose(out / f"{n}.frames")) for n in names],
@@ -290,16 +309,13 @@ def relax_from_truth(directory: Path) -> None:
     """``slam6d run``'s relaxation (its settings, models and links) started from the ground truth:
     how far the relaxation's own minimum lies from the truth, whatever registration and loop
     closing hand it."""
-    from slam6d.io.registry import read_sequence
-    from slam6d.pipeline import Pipeline, PipelineConfig
+    from slam6d.pipeline import share_registration_models
     from slam6d.relaxation_methods import relax_poses
 
     config = PipelineConfig()
     pipeline = Pipeline(read_sequence(directory, "uos"), config)
-    truth = [UOS.pose_to_canonical(p) for p in read_kitti_poses(directory / "ground_truth_kitti.txt")]
-    if config.relax_registration_models:  # as the relaxation stage hands them over
-        for k in range(len(pipeline.sequence)):
-            pipeline.models.share_plane_model(k, pipeline.registration_model(k))
+    truth = ground_truth(directory)
+    share_registration_models(pipeline.models, config, config.relaxation, pipeline.registration_model)
     links = [(k - 1, k) for k in range(1, len(truth))]  # what registration relates: each scan to the one before
     result = relax_poses(config.relaxation, pipeline.models, truth, links=links, config=config.relax)
     print(f"| {directory.name} | {split_ate(result.poses, truth)} | {result.iterations} | {os.getloadavg()[0]:.1f} |")
@@ -310,22 +326,11 @@ def profile_relaxation(directory: Path) -> None:
     import cProfile
     import pstats
     import time
-    from dataclasses import replace
 
-    from slam6d.attitude import declared_tilt_noise
-    from slam6d.io.registry import read_sequence
-    from slam6d.pipeline import Pipeline, PipelineConfig
     from slam6d.relax import neighbour_graph
     from slam6d.relaxation_methods import relax_poses
 
-    config = PipelineConfig(tilt_noise_deg=declared_tilt_noise(directory))  # as `slam6d run` on the folder
-    pipeline = Pipeline(read_sequence(directory, "uos"), replace(config, relaxation="none"))
-    pipeline.run()
-    if config.relax_registration_models:  # as the relaxation stage hands them over
-        for k in range(len(pipeline.sequence)):
-            model = pipeline.registration_model(k)
-            if model is not pipeline.models.index(k):
-                pipeline.models.share_plane_model(k, model)
+    config, pipeline = registered_until_relaxation(directory)
     profile = cProfile.Profile(time.process_time)  # CPU seconds: what the machine's other work inflates least
     began = time.process_time()
     profile.enable()
@@ -334,7 +339,7 @@ def profile_relaxation(directory: Path) -> None:
     )
     profile.disable()
     seconds = time.process_time() - began
-    truth = [UOS.pose_to_canonical(p) for p in read_kitti_poses(directory / "ground_truth_kitti.txt")]
+    truth = ground_truth(directory)
     ate = {
         "before": 100 * absolute_trajectory_error(pipeline.poses, truth).rmse,
         "after": 100 * absolute_trajectory_error(result.poses, truth).rmse,
@@ -378,17 +383,11 @@ def relaxation_rounds(directory: Path, relax: RelaxationConfig) -> None:
     length over the truth's: how fast the rounds close the distance (docs/scale.md, "Mixing the
     rounds")."""
     import time
-    from dataclasses import replace
 
-    from slam6d.attitude import declared_tilt_noise
     from slam6d.lum import lum_relaxation
-    from slam6d.pipeline import share_registration_models
 
-    config = PipelineConfig(tilt_noise_deg=declared_tilt_noise(directory))  # as `slam6d run` on the folder
-    pipeline = Pipeline(read_sequence(directory, "uos"), replace(config, relaxation="none"))
-    pipeline.run()
-    share_registration_models(pipeline.models, config, "lum", pipeline.registration_model)
-    truth = [UOS.pose_to_canonical(p) for p in read_kitti_poses(directory / "ground_truth_kitti.txt")]
+    _, pipeline = registered_until_relaxation(directory)
+    truth = ground_truth(directory)
     length = float(path_lengths(truth)[-1])
     rows: list[str] = []
 
@@ -428,7 +427,7 @@ def stage_cpu(directory: Path) -> None:
         pipeline.step()
         cpu[pipeline.stage] = cpu.get(pipeline.stage, 0.0) + time.process_time() - start
     total = time.process_time() - began
-    truth = [UOS.pose_to_canonical(p) for p in read_kitti_poses(directory / "ground_truth_kitti.txt")]
+    truth = ground_truth(directory)
     ate = 100 * absolute_trajectory_error(pipeline.poses, truth).rmse
     stages = ", ".join(f"{stage} {seconds:.1f}" for stage, seconds in cpu.items() if seconds >= 0.05)
     print(f"| {directory.name} | {total:.1f} s | {stages} | {ate:.3f} cm | {os.getloadavg()[0]:.1f} |", flush=True)
@@ -489,7 +488,7 @@ def step_bias(work: Path, scans: int, gate_on: float, robust_on: float) -> None:
     """The ``--step-bias`` rows of one dense loop (see the module docstring)."""
     directory = session(work, "loop", scans)
     sequence = read_sequence(directory, "uos")
-    truth = [UOS.pose_to_canonical(p) for p in read_kitti_poses(directory / "ground_truth_kitti.txt")]
+    truth = ground_truth(directory)
     base = PipelineConfig(loops=False, relaxation="none")
     lengths = [float(np.linalg.norm((invert(truth[k - 1]) @ truth[k])[:3, 3])) for k in range(1, scans)]
     variants = {
@@ -588,7 +587,7 @@ def per_step(work: Path, scans: int) -> None:
     run = Pipeline(sequence, PipelineConfig(loops=False, relaxation="none"))
     run.run()
     estimate = [np.asarray(p) for p in run.poses]
-    truth_files = [UOS.pose_to_canonical(p) for p in read_kitti_poses(directory / "ground_truth_kitti.txt")]
+    truth_files = ground_truth(directory)
     positions = np.array([p[:3, 3] for p in estimate])
     reference = np.array([p[:3, 3] for p in truth_files])
     alignment = rigid_alignment(positions, reference)
