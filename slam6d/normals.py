@@ -43,8 +43,7 @@ a data point between two of the model's lines pairs with a closest point on anot
 test for cubes holding two lines (their points' kurtosis along the middle eigenvector: 1.0 for two
 lines) changed nothing; an absolute cap on a cube's thickness (1 cm RMS) left 0.19 cm, and
 0.06 cm only without the k-NN fallback, which lost 45 % of the pairs. The residuals are the handle
-instead
-(``ICPConfig.residual_gate`` and ``robust_scale``; docs/scale.md, "Short steps").
+instead (``ICPConfig.residual_gate`` and ``robust_scale``; docs/scale.md, "Short steps").
 """
 
 from __future__ import annotations
