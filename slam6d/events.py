@@ -95,6 +95,7 @@ class ScanSummary:
     rms: float = float("nan")
     fitness: float = float("nan")
     fitness_bar: float = float("nan")  # under it the fit counted as poor and the searches ran (Pipeline.fitness_bar)
+    close_fitness: float = float("nan")  # share of its points close to the model's planes (ICPResult.close_fitness)
     converged: bool = False
     octree_guess: bool = False
     seconds: float = 0.0

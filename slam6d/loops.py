@@ -68,7 +68,7 @@ from slam6d.initial_guess import GuessResult, OctreeSearchConfig, config_for, oc
 from slam6d.model import ModelIndex
 from slam6d.nn import RadiusIndex
 from slam6d.octree import Occupancy, Octree
-from slam6d.pair import coarse_to_fine
+from slam6d.pair import better_fit, coarse_to_fine
 from slam6d.posegraph import PoseEdge, optimize_pose_graph
 from slam6d.relax import ScanModels
 
@@ -365,8 +365,9 @@ def verify(
             searched_result: ICPResult | RegistrationError = exc
         else:
             searched_result = searched
-        if not isinstance(searched_result, RegistrationError) and (
-            isinstance(result, RegistrationError) or searched_result.fitness > result.fitness
+        if (
+            not isinstance(searched_result, RegistrationError)
+            and better_fit(result, searched_result) is searched_result
         ):
             result = searched_result
             verdict.searched = _pose_change(start, guess.transform, data_points)[0]

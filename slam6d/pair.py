@@ -80,12 +80,17 @@ def coarse_to_fine(config: ICPConfig, factors: tuple[float, ...] = (4.0, 2.0)) -
     return replace(config, distance_schedule=tuple(f * config.max_distance for f in factors))
 
 
-def better_fit(first: Outcome, second: Outcome) -> Outcome:
+def better_fit(first: Outcome, second: Outcome, measure: str = "close_fitness") -> Outcome:
     """The ICP outcome to keep of two tries at the same scan: a success over a failure, else the
-    one pairing more of the data (on equal fitness the first, i.e. the odometry start, stays)."""
+    one scoring higher by ``measure`` (on a tie the first, i.e. the odometry start, stays).
+
+    By default that is the share of the data close to the model (``ICPResult.close_fitness``), not
+    the share pairing within the max distance (``fitness``): a wrong basin can pair as many points
+    as the right one, only further off their planes. Sequential registration with odometry still
+    compares by ``fitness`` (:meth:`slam6d.pipeline.Pipeline._better_fit` says why)."""
     if isinstance(first, RegistrationError):
         return second
-    if isinstance(second, RegistrationError) or second.fitness <= first.fitness:
+    if isinstance(second, RegistrationError) or getattr(second, measure) <= getattr(first, measure):
         return first
     return second
 

@@ -11,7 +11,16 @@ import pytest
 
 from slam6d.errors import RegistrationError
 from slam6d.geometry import invert, make_pose, pose_difference, pose_from_xyzrpy, rot_z, transform_points
-from slam6d.icp import ICPConfig, ICPIteration, MotionPrior, correspondences, count_pairs, icp, icp_iterations
+from slam6d.icp import (
+    CLOSE_SHARE,
+    ICPConfig,
+    ICPIteration,
+    MotionPrior,
+    correspondences,
+    count_pairs,
+    icp,
+    icp_iterations,
+)
 from slam6d.model import ModelIndex, StackedModel, fused_model
 from slam6d.nn import build_index
 from slam6d.normals import estimate_normals
@@ -131,6 +140,22 @@ def test_residual_gate_leaves_out_pairs_off_their_planes_and_still_counts_them(
     assert pose_difference(kept.transform, MOTION)[0] > 0.005  # dragged by the near points
     assert_pose_close(gated.transform, MOTION, 1e-4, 0.01)
     assert gated.pairs == kept.pairs == len(data)
+
+
+def test_close_fitness_counts_only_the_pairs_near_their_planes(model_index: ModelIndex, model: np.ndarray) -> None:
+    """The fitness counts every pair within the max distance; the close fitness only the data points
+    within ``CLOSE_SHARE`` of it of their partner's plane: the points 12-18 cm in front of the wall
+    pair but are not close. That is what tells a fit in the right place from one that pairs as many
+    points in a wrong one (``slam6d.pair.better_fit``)."""
+    data = _with_points_in_front_of_its_wall(model)
+    config = ICPConfig(distance_schedule=(1.0, 0.5), max_iterations=200, data_voxel_size=0.0)
+    result = icp(model_index, data, np.eye(4), config)
+    assert CLOSE_SHARE * config.max_distance < 0.12
+    assert result.fitness == 1.0
+    # every copied point is close; of the 200 in front of the wall, the few near a corner lie close to
+    # the other wall's plane
+    close = round(result.close_fitness * len(data))
+    assert len(data) - 200 <= close <= len(data) - 190
 
 
 def test_robust_weights_shrink_the_pull_of_pairs_off_their_planes(model_index: ModelIndex, model: np.ndarray) -> None:
