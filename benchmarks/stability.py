@@ -16,7 +16,7 @@ OS1-64 x indoor hand-held walk, outdoor car x seeds 1-2), six 30-scan hand-held 
 (turns up to 45° between scans) and three 30-scan drives.
 
     .venv/bin/python benchmarks/stability.py [--variants 4] [--only walk30] [--work /tmp/stability]
-        [--against ../before]
+        [--sensors vlp16,hdl32,os1-64] [--seeds 1,2] [--against ../before]
 
 ``--against`` runs another checkout's `slam6d run` on the same files, session by session.
 """
@@ -46,16 +46,18 @@ from slam6d.simulate import SimulationConfig, simulate_session  # noqa: E402
 JITTER_CM = 0.006  # up to 0.06 mm, then rounded to the files' 0.01 cm: each coordinate moves by 0 or 0.1 mm
 
 
-def sessions() -> dict[str, SimulationConfig]:
+def sessions(sensors: list[str], seeds: list[int]) -> dict[str, SimulationConfig]:
+    """The 10-scan walks and drives and the 30-scan walks of each of ``sensors`` and ``seeds``, and
+    three 30-scan drives (VLP-16 seed 1, HDL-32E seed 2, OS1-64 seed 2)."""
     found: dict[str, SimulationConfig] = {}
     for world in ("indoor", "outdoor"):
-        for sensor in ("vlp16", "hdl32", "os1-64"):
-            for seed in (1, 2):
+        for sensor in sensors:
+            for seed in seeds:
                 found[f"{world}10/{sensor}/seed{seed}"] = SimulationConfig(
                     seed=seed, scans=10, sensor=sensor, world=world, odometry=False
                 )
-    for sensor in ("vlp16", "hdl32", "os1-64"):
-        for seed in (1, 2):
+    for sensor in sensors:
+        for seed in seeds:
             found[f"walk30/{sensor}/seed{seed}"] = SimulationConfig(
                 seed=seed, scans=30, sensor=sensor, world="indoor", motion="handheld", odometry=False
             )
@@ -99,6 +101,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--variants", type=int, default=4, help="re-rounded copies of each session (besides it)")
     parser.add_argument("--only", default="", help="the sessions whose name contains this")
+    parser.add_argument("--sensors", default="vlp16,hdl32,os1-64", help="of the 10-scan and 30-scan walks")
+    parser.add_argument("--seeds", default="1,2", help="of the 10-scan and 30-scan walks")
     parser.add_argument("--work", type=Path, default=Path(tempfile.gettempdir()) / "slam6d_stability")
     parser.add_argument("--against", type=Path, help="another checkout whose slam6d run is measured too")
     args = parser.parse_args()
@@ -106,7 +110,8 @@ def main() -> None:
     spreads: dict[Path, list[float]] = {tree: [] for tree in trees}
     worst: dict[Path, float] = dict.fromkeys(trees, 0.0)
     print(f"ATE (cm) of slam6d run on each session and {args.variants} re-rounded copies (0.1 mm)")
-    for name, config in sessions().items():
+    seeds = [int(seed) for seed in args.seeds.split(",")]
+    for name, config in sessions(args.sensors.split(","), seeds).items():
         if args.only not in name:
             continue
         folder = args.work / name.replace("/", "_")
