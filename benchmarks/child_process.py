@@ -11,12 +11,18 @@ from __future__ import annotations
 
 import argparse
 import compileall
+import json
 import os
 import resource
 import subprocess
+import sys
+import tempfile
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import NamedTuple
+
+import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -64,3 +70,33 @@ def checkouts(against: Path | None) -> list[Path]:
     for tree in trees:
         compileall.compile_dir(tree / "slam6d", quiet=1)
     return trees
+
+
+class RunOutput(NamedTuple):
+    """What a `slam6d run` child process left: its poses as written (the input's own frame and
+    units), its exit code, and when it failed (exit code not 0) the reason ``report.json`` gives."""
+
+    poses: list[np.ndarray]
+    returncode: int
+    failure: str
+
+
+def run_slam6d(source: Path, args: Sequence[str] = (), tree: Path = ROOT) -> RunOutput:
+    """`slam6d run SOURCE --out TMP ARGS` of the checkout ``tree`` as a user starts it: a new process
+    reading the files and writing its results. A run whose stage failed still wrote its poses (exit
+    3), and they are returned with the reason; a run that wrote none raises its error output."""
+    from slam6d.io.poses import read_kitti_poses  # the engine of this checkout, for reading only
+
+    with tempfile.TemporaryDirectory() as out:
+        command = [sys.executable, "-m", "slam6d.cli", "run", str(source), "--out", out, *args]
+        done = subprocess.run(
+            command, capture_output=True, text=True, cwd=tree, env=os.environ | {"PYTHONPATH": str(tree)}
+        )
+        poses_file = Path(out) / "poses_kitti.txt"
+        if not poses_file.exists():
+            raise RuntimeError(f"{source}: exit {done.returncode}: {done.stderr.strip().splitlines()[-1:]}")
+        failure = ""
+        if done.returncode != 0:
+            report = json.loads((Path(out) / "report.json").read_text())
+            failure = str(report.get("failure", {}).get("reason", ""))
+        return RunOutput(read_kitti_poses(poses_file), done.returncode, failure)

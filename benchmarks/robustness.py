@@ -30,10 +30,8 @@ map whatever the reference. Success: error <= 5 cm (bunny: 1 mm) and the method 
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import shutil
-import subprocess
 import sys
 import tempfile
 import time
@@ -47,7 +45,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from benchmarks.child_process import CHAIN_STARTUP, checkouts, children_cpu, timed_command  # noqa: E402
+from benchmarks.child_process import CHAIN_STARTUP, checkouts, children_cpu, run_slam6d, timed_command  # noqa: E402
 from benchmarks.startup import FIRST_CALL  # noqa: E402
 from benchmarks.trajectory import kiss_icp, load, small_gicp_chained, small_gicp_gtsam  # noqa: E402
 from slam6d.drift import drifted_odometry  # noqa: E402
@@ -103,19 +101,10 @@ def self_consistency(case: Case, poses: Sequence[Matrix]) -> float:
 
 
 def slam6d_run(case: Case) -> list[Matrix]:
-    with tempfile.TemporaryDirectory() as out:
-        command = [sys.executable, "-m", "slam6d.cli", "run", str(case.source), "--out", out, *case.run_args]
-        done = subprocess.run(
-            command, capture_output=True, text=True, check=False, env=os.environ | {"PYTHONPATH": str(ROOT)}
-        )
-        poses_file = Path(out) / "poses_kitti.txt"
-        if not poses_file.exists():
-            raise RuntimeError(f"exit {done.returncode}: {done.stderr.strip().splitlines()[-1:]}")
-        poses = [case.from_native(p) for p in read_kitti_poses(poses_file)]
-        if done.returncode != 0:  # a failed stage still writes its poses; count them, but say so
-            report = json.loads((Path(out) / "report.json").read_text())
-            print(f"    slam6d run exit {done.returncode}: {report.get('failure', {}).get('reason', '')[:100]}")
-        return poses
+    run = run_slam6d(case.source, case.run_args)
+    if run.returncode != 0:  # a failed stage still writes its poses; count them, but say so
+        print(f"    slam6d run exit {run.returncode}: {run.failure[:100]}")
+    return [case.from_native(p) for p in run.poses]
 
 
 def _prior(case: Case) -> list[Matrix]:

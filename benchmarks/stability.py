@@ -24,10 +24,8 @@ OS1-64 x indoor hand-held walk, outdoor car x seeds 1-2), six 30-scan hand-held 
 from __future__ import annotations
 
 import argparse
-import os
 import shutil
 import statistics
-import subprocess
 import sys
 import tempfile
 from pathlib import Path
@@ -37,6 +35,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from benchmarks.child_process import run_slam6d  # noqa: E402
 from slam6d.geometry import UOS  # noqa: E402
 from slam6d.io.poses import read_kitti_poses  # noqa: E402
 from slam6d.io.uos import discover_uos, read_uos_scan, write_uos_scan  # noqa: E402
@@ -85,15 +84,7 @@ def rerounded(original: Path, variant: Path, seed: int) -> None:
 
 def ate_cm(tree: Path, folder: Path, truth: list[np.ndarray]) -> float:
     """`slam6d run` of the checkout ``tree`` on ``folder``: its ATE (cm)."""
-    with tempfile.TemporaryDirectory() as out:
-        command = [sys.executable, "-m", "slam6d.cli", "run", str(folder), "--out", out]
-        done = subprocess.run(
-            command, capture_output=True, text=True, cwd=tree, env=os.environ | {"PYTHONPATH": str(tree)}
-        )
-        poses_file = Path(out) / "poses_kitti.txt"
-        if not poses_file.exists():
-            raise RuntimeError(f"{folder}: exit {done.returncode}: {done.stderr[-500:]}")
-        poses = [UOS.pose_to_canonical(p) for p in read_kitti_poses(poses_file)]
+    poses = [UOS.pose_to_canonical(p) for p in run_slam6d(folder, tree=tree).poses]
     return 100.0 * absolute_trajectory_error(poses, truth).rmse
 
 
