@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field, replace
+from typing import Literal
 
 import numpy as np
 
@@ -80,7 +81,11 @@ def coarse_to_fine(config: ICPConfig, factors: tuple[float, ...] = (4.0, 2.0)) -
     return replace(config, distance_schedule=tuple(f * config.max_distance for f in factors))
 
 
-def better_fit(first: Outcome, second: Outcome, measure: str = "close_fitness") -> Outcome:
+FitMeasure = Literal["fitness", "close_fitness"]
+"""Which share of an :class:`~slam6d.icp.ICPResult` ranks two fits: paired, or close to the model."""
+
+
+def better_fit(first: Outcome, second: Outcome, measure: FitMeasure = "close_fitness") -> Outcome:
     """The ICP outcome to keep of two tries at the same scan: a success over a failure, else the
     one scoring higher by ``measure`` (on a tie the first, i.e. the odometry start, stays).
 

@@ -79,7 +79,7 @@ from slam6d.loops import (
 )
 from slam6d.model import ModelIndex, StackedModel, fused_model
 from slam6d.octree import Occupancy, Octree, reduce_points
-from slam6d.pair import MIN_FITNESS, Outcome, better_fit, coarse_to_fine, is_poor
+from slam6d.pair import MIN_FITNESS, FitMeasure, Outcome, better_fit, coarse_to_fine, is_poor
 from slam6d.relax import Cancelled, RelaxationConfig, RelaxationResult, ScanModels
 from slam6d.relaxation_methods import models_icp_config, relax_poses
 from slam6d.scan import ScanSequence
@@ -717,7 +717,7 @@ class Pipeline:
         motion_known = index >= 2 and (index - 1) not in self.skipped
         return not self.has_odometry[index] and not motion_known
 
-    def _recent_fitness(self, index: int, measure: str = "fitness") -> list[float]:
+    def _recent_fitness(self, index: int, measure: FitMeasure = "fitness") -> list[float]:
         """``measure`` (``fitness`` or ``close_fitness``) of the registered scans among the
         ``FITNESS_HISTORY`` before scan ``index``."""
         recent = (
@@ -774,7 +774,7 @@ class Pipeline:
                 return converged
         return better_fit(first, second, "fitness" if self._odometry_step(index) else "close_fitness")
 
-    def _clearly_under_recent(self, index: int, outcome: Outcome, measure: str = "fitness") -> bool:
+    def _clearly_under_recent(self, index: int, outcome: Outcome, measure: FitMeasure = "fitness") -> bool:
         """Whether a fit of scan ``index`` that passed the bar still has its ``measure`` (``fitness``
         or ``close_fitness``) under ``RECHECK_SHARE`` of the recent median (any history at all,
         unlike the bar): worth another try."""
