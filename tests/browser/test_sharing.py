@@ -192,7 +192,14 @@ def test_presence_shows_the_other_browser_as_a_frustum_and_follow_takes_its_view
         headers={"Authorization": f"Bearer {ann_token}"},
     )
     assert moved.status_code == 200, moved.text
-    _wait(lambda: np.allclose(bob.client.camera.position, place["position"], atol=1e-3), what="bob's view following")
+    # the camera's position and look-at reach the server as separate updates: wait for both
+    _wait(
+        lambda: (
+            np.allclose(bob.client.camera.position, place["position"], atol=1e-3)
+            and np.allclose(bob.client.camera.look_at, place["look_at"], atol=1e-3)
+        ),
+        what="bob's view following",
+    )
     assert np.allclose(bob.client.camera.look_at, place["look_at"], atol=1e-3)
     circle = httpx.post(
         f"{server.url}/api/sessions/corridor/presence/{keys['ann']}/follow",
